@@ -1,0 +1,1 @@
+"""The only package that imports bpy: it renders SceneSpec dicts and nothing else."""

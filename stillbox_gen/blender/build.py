@@ -1,0 +1,166 @@
+"""Turn a SceneSpec dict into Blender data (the only module, with render.py, that imports bpy).
+
+Nothing here draws random numbers: every value comes from the scene description.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import bpy
+import numpy as np
+from mathutils import Matrix, Quaternion, Vector
+
+from .. import camera, shapes
+
+SMOOTH_KINDS = {"sphere", "torus", "cylinder", "cone"}
+_PATTERN_NODES = {
+    "noise": ("ShaderNodeTexNoise", "Fac"),
+    "voronoi": ("ShaderNodeTexVoronoi", "Distance"),
+    "wave": ("ShaderNodeTexWave", "Fac"),
+    "gradient_stripes": ("ShaderNodeTexWave", "Fac"),
+    "checker": ("ShaderNodeTexChecker", "Fac"),
+    "brick": ("ShaderNodeTexBrick", "Fac"),
+    "magic": ("ShaderNodeTexMagic", "Fac"),
+}
+
+
+def clear_scene() -> None:
+    """Remove the previous scene's data; render settings and loaded photo textures stay."""
+    data = bpy.data
+    doomed = [*data.objects, *data.meshes, *data.materials, *data.lights, *data.cameras]
+    doomed += [*data.worlds, *data.actions]
+    if doomed:
+        data.batch_remove(doomed)
+
+
+def _pattern(nodes, pattern: str, detail: float):
+    node_type, output = _PATTERN_NODES[pattern]
+    tex = nodes.new(node_type)
+    if pattern == "noise":
+        tex.inputs["Detail"].default_value = 1.0 + 6.0 * detail
+    elif pattern == "voronoi":
+        tex.inputs["Randomness"].default_value = 0.5 + 0.5 * detail
+    elif pattern == "wave":
+        tex.inputs["Distortion"].default_value = 10.0 * detail
+        tex.inputs["Detail"].default_value = 2.0
+    elif pattern == "gradient_stripes":
+        tex.wave_profile = "SAW"
+        tex.inputs["Distortion"].default_value = 2.0 * detail
+    elif pattern == "checker":
+        tex.inputs["Color1"].default_value = (1, 1, 1, 1)
+        tex.inputs["Color2"].default_value = (0, 0, 0, 1)
+    elif pattern == "brick":
+        tex.inputs["Mortar Size"].default_value = 0.02 + 0.05 * detail
+    elif pattern == "magic":
+        tex.turbulence_depth = 1 + int(detail * 4)
+    return tex, output
+
+
+def make_material(name: str, spec: dict, textures_dir: str | None):
+    """Principled BSDF whose base colour follows the MaterialSpec (object-space, metric mapping)."""
+    mat = bpy.data.materials.new(name)
+    nodes, links = mat.node_tree.nodes, mat.node_tree.links
+    bsdf = nodes.get("Principled BSDF") or nodes.new("ShaderNodeBsdfPrincipled")
+    bsdf.inputs["Roughness"].default_value = spec["roughness"]
+    bsdf.inputs["Metallic"].default_value = spec["metallic"]
+    if spec["kind"] == "plain":
+        bsdf.inputs["Base Color"].default_value = (*spec["colors"][0], 1.0)
+        return mat
+    coords = nodes.new("ShaderNodeTexCoord")
+    mapping = nodes.new("ShaderNodeMapping")
+    mapping.inputs["Location"].default_value = spec["offset"]
+    mapping.inputs["Scale"].default_value = (spec["scale"],) * 3
+    links.new(coords.outputs["Object"], mapping.inputs["Vector"])
+    if spec["kind"] == "image":
+        tex = nodes.new("ShaderNodeTexImage")
+        path = str(Path(textures_dir) / spec["image"])
+        tex.image = bpy.data.images.load(path, check_existing=True)
+        tex.projection = "BOX"
+        tex.projection_blend = 0.2
+        links.new(mapping.outputs["Vector"], tex.inputs["Vector"])
+        tint = nodes.new("ShaderNodeMix")
+        tint.data_type = "RGBA"
+        tint.blend_type = "MULTIPLY"
+        tint.inputs["Factor"].default_value = 1.0
+        links.new(tex.outputs["Color"], tint.inputs["A"])
+        tint.inputs["B"].default_value = (*spec["colors"][0], 1.0)
+        links.new(tint.outputs["Result"], bsdf.inputs["Base Color"])
+        return mat
+    tex, output = _pattern(nodes, spec["pattern"], spec["detail"])
+    links.new(mapping.outputs["Vector"], tex.inputs["Vector"])
+    ramp = nodes.new("ShaderNodeValToRGB")
+    elements = ramp.color_ramp.elements
+    while len(elements) < len(spec["colors"]):
+        elements.new(0.5)
+    for el, colour, pos in zip(elements, spec["colors"], spec["positions"], strict=True):
+        el.position = pos
+        el.color = (*colour, 1.0)
+    links.new(tex.outputs[output], ramp.inputs["Fac"])
+    links.new(ramp.outputs["Color"], bsdf.inputs["Base Color"])
+    return mat
+
+
+def make_mesh_object(name: str, kind: str, dims, inward: bool = False):
+    verts, faces = shapes.mesh(kind, dims)
+    if inward:
+        faces = [tuple(reversed(f)) for f in faces]
+    me = bpy.data.meshes.new(name)
+    me.from_pydata(verts.tolist(), [], faces)
+    if kind in SMOOTH_KINDS:
+        me.shade_smooth()
+        me.set_sharp_from_angle(angle=math.radians(45))
+    obj = bpy.data.objects.new(name, me)
+    bpy.context.scene.collection.objects.link(obj)
+    return obj
+
+
+def build_scene(spec: dict, textures_dir: str | None):
+    """Create objects, box, lights and camera of a SceneSpec dict; returns the camera object."""
+    scene = bpy.context.scene
+    for i, p in enumerate(spec["primitives"]):
+        obj = make_mesh_object(f"prim{i:02d}_{p['kind']}", p["kind"], p["dimensions"])
+        obj.location = p["location"]
+        obj.rotation_mode = "QUATERNION"
+        obj.rotation_quaternion = Quaternion(p["rotation"])
+        obj.data.materials.append(make_material(f"mat{i:02d}", p["material"], textures_dir))
+
+    box = spec["box"]
+    walls = make_mesh_object("walls", "cube", [2 * h for h in box["half_extents"]], inward=True)
+    walls.location = box["center"]
+    walls.visible_shadow = False  # lets the sun and the sky light the inside
+    walls.data.materials.append(make_material("walls", box["material"], textures_dir))
+
+    light = spec["light"]
+    sun_data = bpy.data.lights.new("sun", type="SUN")
+    sun_data.energy = light["sun_strength"]
+    sun_data.color = light["sun_color"]
+    sun = bpy.data.objects.new("sun", sun_data)
+    sun.rotation_mode = "QUATERNION"
+    sun.rotation_quaternion = Vector(light["sun_direction"]).to_track_quat("-Z", "Y")
+    scene.collection.objects.link(sun)
+
+    world = bpy.data.worlds.new("sky")
+    bg = world.node_tree.nodes["Background"]
+    bg.inputs["Color"].default_value = (*light["ambient_color"], 1.0)
+    bg.inputs["Strength"].default_value = light["ambient_strength"]
+    scene.world = world
+
+    cam_spec = spec["camera"]
+    cam_data = bpy.data.cameras.new("camera")
+    settings = camera.blender_camera_settings(
+        np.array(cam_spec["K"]), cam_spec["width"], cam_spec["height"]
+    )
+    for key, value in settings.items():
+        setattr(cam_data, key, value)
+    cam_data.clip_start = cam_spec["near_clip"]
+    cam_data.clip_end = cam_spec["far_clip"]
+    cam = bpy.data.objects.new("camera", cam_data)
+    scene.collection.objects.link(cam)
+    scene.camera = cam
+    return cam
+
+
+def set_camera_pose(cam, cam2world_cv) -> None:
+    cam.matrix_world = Matrix(camera.opencv_to_blender_cam2world(np.array(cam2world_cv)).tolist())

@@ -1,0 +1,118 @@
+"""Worker-process side of rendering: one-time Cycles set-up, then one call per scene.
+
+A worker process imports bpy once (about 0.75 s) and renders many scenes; the pool replaces it
+after ``recycle_after`` scenes to bound memory. Each frame is rendered as a still (persistent data
+on) to a temporary multilayer EXR, read back, and written as 8-bit sRGB + float32 depth.
+"""
+
+from __future__ import annotations
+
+import os
+import resource
+import time
+from pathlib import Path
+
+import bpy
+import cv2
+import numpy as np
+
+from .. import formats
+from . import build
+
+_STATE: dict = {}
+
+
+def init_worker(render: dict, width: int, height: int, threads: int, textures_dir: str | None):
+    """Configure Cycles once per process. ``render`` is RenderConfig as a dict."""
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, 1)  # Blender prints a line per saved file on stdout
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    scene = bpy.context.scene
+    scene.render.engine = "CYCLES"
+    cy = scene.cycles
+    cy.device = "CPU"
+    cy.samples = render["samples"]
+    cy.use_adaptive_sampling = False
+    cy.use_denoising = render["denoise"]
+    cy.denoiser = "OPENIMAGEDENOISE"
+    cy.denoising_prefilter = "FAST"
+    cy.max_bounces = render["max_bounces"]
+    cy.diffuse_bounces = min(1, render["max_bounces"])
+    cy.glossy_bounces = render["max_bounces"]
+    cy.transmission_bounces = 0
+    cy.volume_bounces = 0
+    cy.transparent_max_bounces = 0
+    cy.caustics_reflective = False
+    cy.caustics_refractive = False
+    r = scene.render
+    r.resolution_x, r.resolution_y, r.resolution_percentage = width, height, 100
+    r.use_persistent_data = True
+    r.use_motion_blur = False
+    if threads > 0:
+        r.threads_mode = "FIXED"
+        r.threads = threads
+    scene.view_settings.view_transform = "Standard"
+    scene.view_settings.look = "None"
+    scene.view_settings.exposure = 0.0
+    scene.view_settings.gamma = 1.0
+    layer = scene.view_layers[0]
+    layer.use_pass_z = True
+    layer.cycles.denoising_store_passes = False
+    img = r.image_settings
+    img.media_type = "MULTI_LAYER_IMAGE"
+    img.file_format = "OPEN_EXR_MULTILAYER"
+    img.color_depth = "16"  # the Z pass stays float32 in half-float EXRs
+    img.exr_codec = "ZIP"
+    _STATE.update(textures_dir=textures_dir, scenes=0)
+
+
+def frame_seed(scene_seed: int, frame: int) -> int:
+    """Cycles noise seed of a frame: differs per frame so noise does not stick to the screen."""
+    return int((scene_seed * 1_000_003 + frame * 7_919) % (2**31 - 1))
+
+
+def _channels(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    chans = formats.read_multilayer_exr(path)
+    rgba = next(v for k, v in chans.items() if k.endswith("Combined"))
+    depth = next(v for k, v in chans.items() if k.endswith("Depth.Z") or k.endswith("Depth"))
+    return np.asarray(rgba[..., :3], dtype=np.float32), np.asarray(depth, dtype=np.float32)
+
+
+def render_scene(spec: dict, out_dir: str, image_format: str, legacy: bool) -> dict:
+    """Render every frame of a SceneSpec dict into ``out_dir`` (a temporary folder).
+
+    Files are named as in formats.py; returns timing and memory statistics.
+    """
+    t0 = time.perf_counter()
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    scene = bpy.context.scene
+    build.clear_scene()
+    cam = build.build_scene(spec, _STATE["textures_dir"])
+    t_build = time.perf_counter() - t0
+    local = formats.local_index(spec["index"])
+    params = [cv2.IMWRITE_JPEG_QUALITY, 95]
+    for f, pose in enumerate(spec["camera"]["cam2world"]):
+        build.set_camera_pose(cam, pose)
+        scene.cycles.seed = frame_seed(spec["seed"], f)
+        tmp = out / f"_render_{f:02d}.exr"
+        scene.render.filepath = str(tmp)
+        bpy.ops.render.render(write_still=True)
+        rgb, depth = _channels(tmp)
+        tmp.unlink()
+        bgr = formats.linear_to_srgb8(rgb)[..., ::-1]
+        cv2.imwrite(str(out / formats.rgb_name(local, f, image_format)), bgr, params)
+        formats.write_depth_exr(out / formats.depth_name(local, f), depth)
+        if legacy:
+            if image_format != "jpg":
+                cv2.imwrite(str(out / formats.rgb_name(local, f, "jpg")), bgr, params)
+            np.save(out / formats.depth_name(local, f, "npy"), depth)
+    _STATE["scenes"] += 1
+    return {
+        "index": spec["index"],
+        "seconds": time.perf_counter() - t0,
+        "build_seconds": t_build,
+        "frames": len(spec["camera"]["cam2world"]),
+        "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+        "pid": os.getpid(),
+    }

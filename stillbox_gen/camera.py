@@ -1,0 +1,165 @@
+"""Camera maths: intrinsics, rotations and the OpenCV <-> Blender conventions.
+
+Conventions used everywhere in this project:
+
+* Camera axes are OpenCV's: x right, y down, z forward (optical axis). Units are metres.
+* Pixel coordinates are OpenCV's pixel-centre convention: the centre of the top-left pixel is
+  (0, 0), so a centred principal point is ((W - 1) / 2, (H - 1) / 2).
+* ``K = [[f, 0, cx], [0, f, cy], [0, 0, 1]]`` with square pixels (fx = fy = f).
+* Quaternions are [w, x, y, z], unit norm, w >= 0.
+* ``cam2world`` maps camera (OpenCV) coordinates to world coordinates; ``world2cam`` is its inverse.
+
+Blender's camera looks down its local -Z with +Y up, so
+``cam2world_opencv = matrix_world_blender @ diag(1, -1, -1, 1)``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+#: Flips between OpenCV camera axes and Blender camera axes (its own inverse).
+CV_TO_BLENDER = np.diag([1.0, -1.0, -1.0])
+
+#: Sensor width (mm) given to Blender; only the ratio lens / sensor width matters.
+BLENDER_SENSOR_WIDTH_MM = 36.0
+
+
+def focal_from_fov(fov_deg: float, width: int) -> float:
+    """Focal length in pixels for a horizontal field of view in degrees: f = W / (2 tan(fov/2))."""
+    return width / (2.0 * math.tan(math.radians(fov_deg) / 2.0))
+
+
+def fov_from_focal(focal_px: float, width: int) -> float:
+    """Horizontal field of view in degrees for a focal length in pixels."""
+    return math.degrees(2.0 * math.atan(width / (2.0 * focal_px)))
+
+
+def centred_principal_point(width: int, height: int) -> tuple[float, float]:
+    """Principal point at the image centre, in the pixel-centre convention."""
+    return (width - 1) / 2.0, (height - 1) / 2.0
+
+
+def intrinsics_matrix(focal_px: float, cx: float, cy: float) -> np.ndarray:
+    """3x3 pinhole matrix K (pixels) with square pixels."""
+    return np.array([[focal_px, 0.0, cx], [0.0, focal_px, cy], [0.0, 0.0, 1.0]])
+
+
+def blender_camera_settings(K: np.ndarray, width: int, height: int) -> dict[str, float | str]:
+    """Blender camera data settings that reproduce K at resolution width x height.
+
+    With ``sensor_fit = 'HORIZONTAL'`` Blender measures both lens shifts in units of the image
+    width and places the optical axis at continuous coordinate (W/2, H/2), i.e. at pixel-centre
+    coordinate (W/2 - 1/2, H/2 - 1/2). Shifting right (+shift_x) moves the principal point left;
+    shifting up (+shift_y) moves it down (y grows downwards).
+    """
+    f, cx, cy = float(K[0, 0]), float(K[0, 2]), float(K[1, 2])
+    if not math.isclose(K[0, 0], K[1, 1], rel_tol=1e-9):
+        raise ValueError("Blender cameras have square pixels: K[0,0] must equal K[1,1]")
+    return {
+        "sensor_fit": "HORIZONTAL",
+        "sensor_width": BLENDER_SENSOR_WIDTH_MM,
+        "lens": f * BLENDER_SENSOR_WIDTH_MM / width,
+        "shift_x": (width / 2.0 - 0.5 - cx) / width,
+        "shift_y": (cy - height / 2.0 + 0.5) / width,
+    }
+
+
+def intrinsics_from_blender(settings: dict, width: int, height: int) -> np.ndarray:
+    """Inverse of :func:`blender_camera_settings` (for sensor_fit 'HORIZONTAL')."""
+    f = settings["lens"] * width / settings["sensor_width"]
+    cx = width / 2.0 - 0.5 - settings["shift_x"] * width
+    cy = height / 2.0 - 0.5 + settings["shift_y"] * width
+    return intrinsics_matrix(f, cx, cy)
+
+
+def opencv_to_blender_cam2world(cam2world_cv: np.ndarray) -> np.ndarray:
+    """Blender object ``matrix_world`` (4x4) for an OpenCV camera-to-world matrix."""
+    out = np.array(cam2world_cv, dtype=float).copy()
+    out[:3, :3] = out[:3, :3] @ CV_TO_BLENDER
+    return out
+
+
+def pose_matrix(rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
+    """4x4 homogeneous matrix from a 3x3 rotation and a 3-vector translation."""
+    m = np.eye(4)
+    m[:3, :3] = rotation
+    m[:3, 3] = translation
+    return m
+
+
+def invert_pose(m: np.ndarray) -> np.ndarray:
+    """Inverse of a rigid 4x4 transform."""
+    r, t = m[:3, :3], m[:3, 3]
+    return pose_matrix(r.T, -r.T @ t)
+
+
+def quat_to_matrix(q: np.ndarray) -> np.ndarray:
+    """3x3 rotation matrix of a unit quaternion [w, x, y, z]."""
+    w, x, y, z = np.asarray(q, dtype=float) / np.linalg.norm(q)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def matrix_to_quat(m: np.ndarray) -> np.ndarray:
+    """Unit quaternion [w, x, y, z] (w >= 0) of a 3x3 rotation matrix."""
+    m = np.asarray(m, dtype=float)
+    tr = np.trace(m)
+    if tr > 0:
+        s = 2.0 * math.sqrt(tr + 1.0)
+        q = [0.25 * s, (m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s]
+    elif m[0, 0] > m[1, 1] and m[0, 0] > m[2, 2]:
+        s = 2.0 * math.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2])
+        q = [(m[2, 1] - m[1, 2]) / s, 0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s]
+    elif m[1, 1] > m[2, 2]:
+        s = 2.0 * math.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2])
+        q = [(m[0, 2] - m[2, 0]) / s, (m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s]
+    else:
+        s = 2.0 * math.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1])
+        q = [(m[1, 0] - m[0, 1]) / s, (m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s]
+    q = np.array(q) / np.linalg.norm(q)
+    return -q if q[0] < 0 else q
+
+
+def rotation_vector_to_matrix(v: np.ndarray) -> np.ndarray:
+    """Rodrigues: rotation of angle |v| (radians) about axis v / |v|."""
+    v = np.asarray(v, dtype=float)
+    angle = float(np.linalg.norm(v))
+    if angle < 1e-15:
+        return np.eye(3)
+    k = v / angle
+    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + math.sin(angle) * kx + (1 - math.cos(angle)) * kx @ kx
+
+
+def random_rotation(rng: np.random.Generator) -> np.ndarray:
+    """Rotation matrix drawn uniformly from SO(3) (normalised Gaussian quaternion)."""
+    q = rng.normal(size=4)
+    return quat_to_matrix(q / np.linalg.norm(q))
+
+
+def random_unit_vector(rng: np.random.Generator) -> np.ndarray:
+    """Direction drawn uniformly on the unit sphere."""
+    v = rng.normal(size=3)
+    return v / np.linalg.norm(v)
+
+
+def project(points_cam: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Pixel coordinates (N, 2) of camera-frame points (N, 3) with z > 0."""
+    p = points_cam @ K.T
+    return p[:, :2] / p[:, 2:3]
+
+
+def backproject(depth: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Camera-frame points (H, W, 3) of a planar depth map (H, W) in metres."""
+    h, w = depth.shape
+    u, v = np.meshgrid(np.arange(w, dtype=float), np.arange(h, dtype=float))
+    x = (u - K[0, 2]) / K[0, 0] * depth
+    y = (v - K[1, 2]) / K[1, 1] * depth
+    return np.stack([x, y, depth], axis=-1)

@@ -1,0 +1,266 @@
+"""Command line: ``stillbox-gen [generate] OPTIONS``, ``stillbox-gen validate``, ``... preview``.
+
+User mistakes print one line ``stillbox-gen: error: ...`` and exit with code 2, writing nothing.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import sys
+from pathlib import Path
+
+import click
+
+from . import config
+from .config import ConfigError
+
+
+class DefaultGroup(click.Group):
+    """A group that runs ``generate`` when the first argument is not a sub-command."""
+
+    def parse_args(self, ctx: click.Context, args: list[str]) -> list[str]:
+        if not args or (args[0] not in self.commands and args[0] not in ("--help", "-h")):
+            args = ["generate", *args]
+        return super().parse_args(ctx, args)
+
+
+@click.group(cls=DefaultGroup, context_settings={"help_option_names": ["-h", "--help"]})
+def cli() -> None:
+    """StillBox-style depth-from-motion datasets rendered by Blender.
+
+    \b
+    stillbox-gen --res 256 --scenes 3000          (same as: stillbox-gen generate ...)
+    stillbox-gen validate data/stillbox-256
+    stillbox-gen preview data/stillbox-256 --out preview.png
+
+    See 'stillbox-gen generate --help' for every generation option.
+    """
+
+
+def parse_resolution(value: str) -> tuple[int, int]:
+    text = value.lower().strip()
+    try:
+        w, h = (int(v) for v in text.split("x")) if "x" in text else (int(text), int(text))
+    except ValueError:
+        raise ConfigError(f"--res: expected N or WxH in pixels, got '{value}'") from None
+    if w <= 0 or h <= 0:
+        raise ConfigError(f"--res: width and height must be positive, got '{value}'")
+    return w, h
+
+
+def parse_point(value: str) -> tuple[float, float]:
+    try:
+        cx, cy = (float(v) for v in value.split(","))
+    except ValueError:
+        raise ConfigError(f"--principal-point: expected CX,CY in pixels, got '{value}'") from None
+    return cx, cy
+
+
+@cli.command()
+@click.option("--res", help="Frame size in pixels: N (square) or WxH.  [default: preset, 64]")
+@click.option("--scenes", type=int, default=100, show_default=True, help="Number of scenes.")
+@click.option(
+    "--out",
+    type=click.Path(path_type=Path),
+    help="Output folder.  [default: data/stillbox-<W>[x<H>]]",
+)
+@click.option(
+    "--seed",
+    type=int,
+    default=0,
+    show_default=True,
+    help="Dataset seed; scene k depends only on (seed, k).",
+)
+@click.option("--workers", type=int, default=2, show_default=True, help="Blender worker processes.")
+@click.option(
+    "--threads",
+    type=int,
+    default=0,
+    show_default=True,
+    help="Cycles threads per worker (0 = all cores).",
+)
+@click.option(
+    "--preset",
+    default="stillbox",
+    show_default=True,
+    help="Preset name in scene_presets/ or path to a .toml file.",
+)
+@click.option("--fov", type=float, help="Horizontal field of view, degrees.  [default: preset, 90]")
+@click.option("--focal", type=float, help="Focal length in pixels (instead of --fov).")
+@click.option(
+    "--principal-point",
+    help="CX,CY in pixels, pixel-centre convention.  [default: ((W-1)/2, (H-1)/2)]",
+)
+@click.option("--frames", type=int, help="Frames per scene.  [default: preset, 10]")
+@click.option(
+    "--displacement",
+    type=float,
+    help="Camera displacement per frame, metres.  [default: preset, 0.1]",
+)
+@click.option(
+    "--textures",
+    type=click.Path(path_type=Path),
+    help="Folder of photos used as textures (texture ratio 0.5).  [default: procedural only]",
+)
+@click.option(
+    "--rotation-noise",
+    type=float,
+    help="Per-frame orientation noise std, degrees.  [default: preset, 0]",
+)
+@click.option(
+    "--rotation-speed",
+    type=float,
+    help="Constant camera rotation, degrees per frame (unstabilised).  [default: preset, 0]",
+)
+@click.option("--samples", type=int, help="Cycles samples per pixel.  [default: preset, 4]")
+@click.option(
+    "--image-format",
+    type=click.Choice(config.IMAGE_FORMATS),
+    help="RGB file format.  [default: png]",
+)
+@click.option(
+    "--legacy",
+    is_flag=True,
+    help="Also write .jpg frames and .npy depth for the original DepthNet code.",
+)
+@click.option("--quiet", is_flag=True, help="No progress bar.")
+def generate(**o) -> None:
+    """Render a dataset (resumes when --out holds an unfinished one with the same parameters)."""
+    from .generate import RunOptions
+    from .generate import generate as run
+
+    cfg = build_config(o)
+    for flag in ("scenes", "workers"):
+        if o[flag] < 1:
+            raise ConfigError(f"--{flag}: must be at least 1, got {o[flag]}")
+    if o["threads"] < 0:
+        raise ConfigError(f"--threads: must be >= 0, got {o['threads']}")
+    c = cfg.camera
+    res = f"{c.width}" if c.width == c.height else f"{c.width}x{c.height}"
+    out = o["out"] or Path("data") / f"stillbox-{res}"
+    opts = RunOptions(
+        out=out,
+        scenes=o["scenes"],
+        workers=o["workers"],
+        threads=o["threads"],
+        progress=not o["quiet"],
+    )
+    click.echo(
+        f"stillbox-gen: {o['scenes']} scenes of {c.frames} frames at {c.width}x{c.height} "
+        f"(preset {cfg.preset}, seed {cfg.seed}) -> {out}",
+        err=True,
+    )
+    summary = run(cfg, opts)
+    click.echo("\n".join(["done:", *("  " + line for line in summary.lines())]), err=True)
+
+
+def build_config(o: dict) -> config.DatasetConfig:
+    cfg = config.load_preset(o["preset"])
+    cam: dict = {}
+    if o["res"]:
+        cam["width"], cam["height"] = parse_resolution(o["res"])
+    if o["fov"] is not None and o["focal"] is not None:
+        raise ConfigError("--fov and --focal: give one or the other")
+    if o["fov"] is not None:
+        cam["fov_deg"], cam["focal_px"] = o["fov"], None
+    if o["focal"] is not None:
+        cam["focal_px"] = o["focal"]
+    if o["principal_point"]:
+        cam["principal_point"] = parse_point(o["principal_point"])
+    for flag, key in (
+        ("frames", "frames"),
+        ("displacement", "displacement"),
+        ("rotation_noise", "rotation_noise_deg"),
+        ("rotation_speed", "rotation_speed_deg"),
+    ):
+        if o[flag] is not None:
+            cam[key] = o[flag]
+    render = {k: o[k] for k in ("samples", "image_format") if o[k] is not None}
+    if o["legacy"]:
+        render["legacy"] = True
+    mats = {}
+    if o["textures"] is not None:
+        mats["textures_dir"] = str(Path(o["textures"]).resolve())
+        mats["texture_files"] = config.list_texture_files(str(o["textures"]))
+    cfg = config.replace(cfg, camera=cam, render=render, materials=mats)
+    cfg = dataclasses.replace(cfg, seed=o["seed"])
+    config.validate(cfg)
+    return cfg
+
+
+@cli.command()
+@click.argument("dataset", type=click.Path(path_type=Path))
+@click.option(
+    "--quick", is_flag=True, help="Check structure and metadata only, not every file's pixels."
+)
+def validate(dataset: Path, quick: bool) -> None:
+    """Check a dataset against the documented format; list problems by file (exit 1 if any)."""
+    from .validate import validate_dataset
+
+    if not dataset.is_dir():
+        raise ConfigError(f"DATASET: '{dataset}' is not a folder")
+    problems, stats = validate_dataset(dataset, check_pixels=not quick)
+    for p in problems:
+        click.echo(p)
+    if problems:
+        click.echo(f"{dataset}: {len(problems)} problem(s)", err=True)
+        sys.exit(1)
+    click.echo(
+        f"{dataset}: valid ({stats['scenes']} scenes, {stats['frames']} frames, "
+        f"{stats['rows']} manifest rows)"
+    )
+
+
+@cli.command()
+@click.argument("dataset", type=click.Path(path_type=Path))
+@click.option(
+    "--out",
+    type=click.Path(path_type=Path),
+    default=Path("preview.png"),
+    show_default=True,
+    help="PNG contact sheet to write.",
+)
+@click.option(
+    "--scenes", type=int, default=4, show_default=True, help="Number of scenes shown (first ones)."
+)
+@click.option(
+    "--max-depth",
+    type=float,
+    default=100.0,
+    show_default=True,
+    help="Top of the depth colour scale, metres.",
+)
+def preview(dataset: Path, out: Path, scenes: int, max_depth: float) -> None:
+    """Draw a contact sheet: first and last frame of a few scenes, with colour-mapped depth."""
+    from .preview import contact_sheet
+
+    if not (dataset / "manifest.parquet").is_file():
+        raise ConfigError(f"DATASET: '{dataset}' has no manifest.parquet (not a finished dataset)")
+    if scenes < 1 or max_depth <= 0:
+        raise ConfigError("--scenes and --max-depth: must be positive")
+    contact_sheet(dataset, out, scenes, max_depth)
+    click.echo(f"wrote {out}")
+
+
+def main(argv: list[str] | None = None) -> None:
+    os.environ.setdefault("OPENCV_IO_ENABLE_OPENEXR", "1")
+    try:
+        cli.main(args=argv, prog_name="stillbox-gen", standalone_mode=False)
+    except (ConfigError, click.UsageError) as e:
+        message = e.format_message() if isinstance(e, click.ClickException) else str(e)
+        click.echo(f"stillbox-gen: error: {message}", err=True)
+        sys.exit(2)
+    except click.exceptions.Abort:
+        click.echo("stillbox-gen: interrupted; re-run the same command to resume", err=True)
+        sys.exit(130)
+    except KeyboardInterrupt:
+        click.echo("stillbox-gen: interrupted; re-run the same command to resume", err=True)
+        sys.exit(130)
+    except RuntimeError as e:
+        click.echo(f"stillbox-gen: failed: {e}", err=True)
+        sys.exit(1)
+
+
+if __name__ == "__main__":
+    main()

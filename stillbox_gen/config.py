@@ -1,0 +1,270 @@
+"""Generator configuration: presets (TOML files in ``scene_presets/``) plus command-line overrides.
+
+A :class:`DatasetConfig` fully determines the scenes of a dataset together with the seed: two runs
+with equal configs and seeds produce the same scene descriptions. Run options that do not change
+content (number of scenes, workers, threads, output folder) live outside it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import math
+import tomllib
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+
+from . import camera
+
+PRIMITIVE_KINDS = ("cube", "sphere", "cone", "torus", "cylinder", "slab")
+IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp")
+IMAGE_FORMATS = ("png", "jpg")
+
+
+class ConfigError(ValueError):
+    """A user mistake in a preset file or a command-line flag (message names it)."""
+
+
+@dataclass(frozen=True)
+class CameraConfig:
+    """Intrinsics and motion: angles in degrees, distances in metres, OpenCV pixel convention."""
+
+    width: int = 64
+    height: int = 64
+    fov_deg: float = 90.0  # horizontal; ignored when focal_px is set
+    focal_px: float | None = None
+    principal_point: tuple[float, float] | None = None  # None = centred ((W-1)/2, (H-1)/2)
+    frames: int = 10
+    displacement: float = 0.1  # metres per frame
+    time_step: float = 1.0 / 30.0  # seconds per frame; speed = displacement / time_step
+    random_orientation: bool = True  # fixed random orientation per scene (else looking down -Z)
+    rotation_noise_deg: float = 0.0  # std of per-frame orientation noise (thesis 6.4)
+    rotation_speed_deg: float = 0.0  # constant angular speed per frame (unstabilised camera)
+
+    def focal(self) -> float:
+        if self.focal_px is not None:
+            return float(self.focal_px)
+        return camera.focal_from_fov(self.fov_deg, self.width)
+
+    def K(self) -> np.ndarray:
+        cx, cy = self.principal_point or camera.centred_principal_point(self.width, self.height)
+        return camera.intrinsics_matrix(self.focal(), cx, cy)
+
+
+@dataclass(frozen=True)
+class ObjectsConfig:
+    """Random primitives around the camera path."""
+
+    count: int = 20
+    kinds: tuple[str, ...] = PRIMITIVE_KINDS
+    size_range: tuple[float, float] = (0.0, 2.0)  # largest extent, metres
+    distance_range: tuple[float, float] = (0.0, 25.0)  # from the first camera position, metres
+    behind_fraction: float = 0.15  # share placed anywhere around the camera (else in view)
+    path_clearance: float = 0.1  # metres kept between the camera path and any surface
+
+
+@dataclass(frozen=True)
+class MaterialsConfig:
+    """Shares of material kinds; ``texture_files`` is filled from ``--textures``."""
+
+    texture_ratio: float = 0.5  # share of objects with a photo texture (when a folder is given)
+    plain_ratio: float = 0.1  # share of the others with a plain colour
+    glossy_ratio: float = 0.3  # share of surfaces with low roughness
+    mirror_ratio: float = 0.05  # share of objects that are metallic mirrors
+    textures_dir: str | None = None
+    texture_files: tuple[str, ...] = ()  # names relative to textures_dir, sorted
+
+
+@dataclass(frozen=True)
+class BoxConfig:
+    """The textured box around everything; centred near the first camera position."""
+
+    half_extent_range: tuple[float, float] = (40.0, 90.0)  # metres, per axis
+    offset_max: float = 10.0  # metres, per axis, of the box centre from the camera start
+
+
+@dataclass(frozen=True)
+class LightConfig:
+    sun_strength_range: tuple[float, float] = (2.0, 6.0)  # W/m^2
+    sun_elevation_range_deg: tuple[float, float] = (15.0, 90.0)
+    ambient_strength_range: tuple[float, float] = (0.3, 1.0)  # world background strength
+    colour_jitter: float = 0.15  # max deviation of light colour channels from white
+
+
+@dataclass(frozen=True)
+class RenderConfig:
+    samples: int = 4
+    denoise: bool = True
+    max_bounces: int = 2
+    max_distance: float = 200.0  # metres, camera clip end; farther surfaces are misses
+    near_clip: float = 0.05  # metres
+    image_format: str = "png"  # png (lossless) or jpg
+    legacy: bool = False  # also write .jpg + .npy for the original DepthNet loaders
+
+
+@dataclass(frozen=True)
+class DatasetConfig:
+    preset: str = "stillbox"
+    seed: int = 0
+    camera: CameraConfig = field(default_factory=CameraConfig)
+    objects: ObjectsConfig = field(default_factory=ObjectsConfig)
+    materials: MaterialsConfig = field(default_factory=MaterialsConfig)
+    box: BoxConfig = field(default_factory=BoxConfig)
+    light: LightConfig = field(default_factory=LightConfig)
+    render: RenderConfig = field(default_factory=RenderConfig)
+    split: tuple[float, float, float] = (0.8, 0.1, 0.1)  # train / val / test shares by scene
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    def fingerprint(self) -> str:
+        """Hash of everything that determines scene content (used to refuse mixing datasets)."""
+        from .formats import canonical_json
+
+        return hashlib.sha256(canonical_json(self.to_dict()).encode()).hexdigest()[:16]
+
+
+SECTIONS = {
+    "camera": CameraConfig,
+    "objects": ObjectsConfig,
+    "materials": MaterialsConfig,
+    "box": BoxConfig,
+    "light": LightConfig,
+    "render": RenderConfig,
+}
+
+
+def available_presets() -> list[str]:
+    return sorted(
+        p.name[:-5] for p in resources.files("scene_presets").iterdir() if p.name.endswith(".toml")
+    )
+
+
+def load_preset(name_or_path: str) -> DatasetConfig:
+    """Load a preset by name (``scene_presets/NAME.toml``) or by path to a TOML file."""
+    path = Path(name_or_path)
+    if path.suffix == ".toml" or path.exists():
+        if not path.is_file():
+            raise ConfigError(f"--preset: no such preset file '{path}'")
+        text, origin, name = path.read_text(), str(path), path.stem
+    else:
+        res = resources.files("scene_presets") / f"{name_or_path}.toml"
+        if not res.is_file():
+            raise ConfigError(
+                f"--preset: unknown preset '{name_or_path}' "
+                f"(available: {', '.join(available_presets())}, or a path to a .toml file)"
+            )
+        text, origin, name = res.read_text(), f"scene_presets/{name_or_path}.toml", name_or_path
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as e:
+        raise ConfigError(f"{origin}: not valid TOML ({e})") from None
+    data.pop("description", None)
+    sections = {}
+    for key, value in data.items():
+        if key not in SECTIONS:
+            raise ConfigError(f"{origin}: unknown section or key '{key}'")
+        cls = SECTIONS[key]
+        names = {f.name for f in dataclasses.fields(cls)}
+        for k in value:
+            if k not in names:
+                raise ConfigError(f"{origin}: unknown key '{key}.{k}'")
+        sections[key] = cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in value.items()})
+    return DatasetConfig(preset=name, **sections)
+
+
+def replace(cfg: DatasetConfig, **sections: dict) -> DatasetConfig:
+    """Copy of cfg with some fields of some sections replaced, e.g. camera={'width': 128}."""
+    changes = {}
+    for sec, values in sections.items():
+        if values:
+            changes[sec] = dataclasses.replace(getattr(cfg, sec), **values)
+    return dataclasses.replace(cfg, **changes)
+
+
+def list_texture_files(directory: str) -> tuple[str, ...]:
+    """Sorted names of readable images in a folder; ConfigError when there are none."""
+    import cv2
+
+    d = Path(directory)
+    if not d.is_dir():
+        raise ConfigError(f"--textures: '{directory}' is not a folder")
+    try:
+        names = sorted(p.name for p in d.iterdir() if p.suffix.lower() in IMAGE_EXTENSIONS)
+    except OSError as e:
+        raise ConfigError(f"--textures: cannot read folder '{directory}' ({e.strerror})") from None
+    good = []
+    for n in names:
+        try:
+            ok = cv2.haveImageReader(str(d / n))
+        except cv2.error:
+            ok = False
+        if ok:
+            good.append(n)
+    if not good:
+        raise ConfigError(
+            f"--textures: no readable images in '{directory}' "
+            f"(looked for {', '.join(IMAGE_EXTENSIONS)})"
+        )
+    return tuple(good)
+
+
+def _check_range(name: str, r: tuple[float, float], lo: float = 0.0) -> None:
+    if len(r) != 2 or not (lo <= r[0] <= r[1]):
+        raise ConfigError(f"{name}: expected [min, max] with {lo} <= min <= max, got {list(r)}")
+
+
+def validate(cfg: DatasetConfig) -> None:
+    """Raise ConfigError naming the first inconsistent parameter."""
+    c, o, m, b, r = cfg.camera, cfg.objects, cfg.materials, cfg.box, cfg.render
+    if c.width <= 0 or c.height <= 0:
+        raise ConfigError(f"--res: width and height must be positive, got {c.width}x{c.height}")
+    if c.focal_px is None and not 0 < c.fov_deg < 180:
+        raise ConfigError(f"--fov: must be in (0, 180) degrees, got {c.fov_deg}")
+    if c.focal_px is not None and c.focal_px <= 0:
+        raise ConfigError(f"--focal: must be positive (pixels), got {c.focal_px}")
+    if c.principal_point is not None:
+        cx, cy = c.principal_point
+        if not (-0.5 <= cx <= c.width - 0.5 and -0.5 <= cy <= c.height - 0.5):
+            raise ConfigError(
+                f"--principal-point: ({cx}, {cy}) lies outside the {c.width}x{c.height} image"
+            )
+    if c.frames < 2:
+        raise ConfigError(f"--frames: need at least 2 frames per scene, got {c.frames}")
+    if not c.displacement > 0:
+        raise ConfigError(f"--displacement: must be positive (metres/frame), got {c.displacement}")
+    if not c.time_step > 0:
+        raise ConfigError(f"camera.time_step: must be positive (seconds), got {c.time_step}")
+    if c.rotation_noise_deg < 0 or c.rotation_speed_deg < 0:
+        raise ConfigError("--rotation-noise / --rotation-speed: must be >= 0 degrees")
+    if o.count < 0:
+        raise ConfigError(f"objects.count: must be >= 0, got {o.count}")
+    bad = [k for k in o.kinds if k not in PRIMITIVE_KINDS]
+    if bad or not o.kinds:
+        raise ConfigError(f"objects.kinds: unknown {bad}; choose from {list(PRIMITIVE_KINDS)}")
+    _check_range("objects.size_range", o.size_range)
+    _check_range("objects.distance_range", o.distance_range)
+    for name in ("texture_ratio", "plain_ratio", "glossy_ratio", "mirror_ratio"):
+        if not 0 <= getattr(m, name) <= 1:
+            raise ConfigError(f"materials.{name}: must be in [0, 1]")
+    if not 0 <= o.behind_fraction <= 1:
+        raise ConfigError("objects.behind_fraction: must be in [0, 1]")
+    _check_range("box.half_extent_range", b.half_extent_range)
+    path_len = c.displacement * (c.frames - 1)
+    inner = b.half_extent_range[0] - b.offset_max
+    if inner <= path_len + 1.0:
+        raise ConfigError(
+            f"box.half_extent_range: smallest box ({b.half_extent_range[0]} m, offset "
+            f"{b.offset_max} m) does not contain the {path_len:.2f} m camera path"
+        )
+    if r.samples < 1:
+        raise ConfigError(f"render.samples: must be >= 1, got {r.samples}")
+    if r.image_format not in IMAGE_FORMATS:
+        raise ConfigError(f"--image-format: must be one of {IMAGE_FORMATS}")
+    if not 0 < r.near_clip < r.max_distance:
+        raise ConfigError("render.near_clip / max_distance: need 0 < near_clip < max_distance")
+    if len(cfg.split) != 3 or min(cfg.split) < 0 or not math.isclose(sum(cfg.split), 1.0):
+        raise ConfigError(f"--split: three non-negative shares summing to 1, got {cfg.split}")

@@ -1,0 +1,307 @@
+"""Run a generation: prepare the output folder, render pending scenes in worker processes, commit
+each scene atomically, then write metadata.json per chunk, manifest.parquet and dataset.json.
+
+A scene is complete exactly when ``<chunk>/.records/<s>.json`` exists; it is written (atomically)
+after the scene's files have been moved into the chunk folder. Re-running the same command skips
+complete scenes and redoes the rest, so a killed run resumes where it stopped.
+"""
+
+from __future__ import annotations
+
+import json
+import multiprocessing
+import os
+import time
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from dataclasses import dataclass, field
+from importlib import metadata as importlib_metadata
+from pathlib import Path
+
+from tqdm import tqdm
+
+from . import formats, manifest
+from .config import ConfigError, DatasetConfig
+from .scene import sample_scene
+
+DATASET_JSON = "dataset.json"
+MANIFEST = "manifest.parquet"
+
+
+@dataclass
+class RunOptions:
+    out: Path
+    scenes: int
+    workers: int = 1
+    threads: int = 0  # Cycles threads per worker; 0 = all cores
+    recycle_after: int = 200  # scenes per worker process before it is replaced
+    progress: bool = True
+
+
+@dataclass
+class Summary:
+    scenes: int = 0
+    frames: int = 0
+    rendered_now: int = 0
+    rejected: int = 0
+    seconds: float = 0.0
+    bytes: int = 0
+    peak_rss_mb: float = 0.0
+    split_counts: dict = field(default_factory=dict)
+
+    def lines(self) -> list[str]:
+        fps = self.rendered_frames_per_second
+        return [
+            f"scenes      {self.scenes} ({self.rendered_now} rendered now)",
+            f"frames      {self.frames}",
+            f"rejected    {self.rejected} sampled scenes (camera path hit an object)",
+            f"splits      {', '.join(f'{k} {v}' for k, v in self.split_counts.items())}",
+            f"time        {self.seconds:.1f} s ({fps:.1f} frames/s rendered)",
+            f"size        {self.bytes / 1e6:.1f} MB",
+            f"peak RSS    {self.peak_rss_mb:.0f} MB per worker",
+        ]
+
+    @property
+    def rendered_frames_per_second(self) -> float:
+        frames = self.rendered_now * (self.frames // max(self.scenes, 1))
+        return frames / self.seconds if self.seconds > 0 else 0.0
+
+
+def versions() -> dict:
+    def v(name: str) -> str:
+        try:
+            return importlib_metadata.version(name)
+        except importlib_metadata.PackageNotFoundError:
+            return "unknown"
+
+    return {"stillbox-gen": v("stillbox-gen"), "blender (bpy)": v("bpy"), "numpy": v("numpy")}
+
+
+def generator_name() -> str:
+    return f"stillbox-gen {versions()['stillbox-gen']}"
+
+
+# ---------------------------------------------------------------- output folder
+
+
+def prepare_output(out: Path, cfg: DatasetConfig, scenes: int) -> None:
+    """Check --out, mark the dataset incomplete; ConfigError (nothing written) on conflicts."""
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"--out: '{out}' exists and is a file, not a folder")
+    existing = out / DATASET_JSON
+    if existing.is_file():
+        try:
+            old = json.loads(existing.read_text())
+        except (OSError, json.JSONDecodeError) as e:
+            raise ConfigError(f"--out: cannot read '{existing}' ({e})") from None
+        if old.get("fingerprint") != cfg.fingerprint():
+            raise ConfigError(
+                f"--out: '{out}' holds a dataset made with other parameters "
+                f"(preset {old.get('preset')!r}, seed {old.get('seed')}); "
+                "use the same parameters to resume or extend it, or another --out"
+            )
+        if old.get("scenes", 0) > scenes:
+            raise ConfigError(
+                f"--scenes: {scenes} is fewer than the {old['scenes']} scenes already in '{out}'"
+            )
+    elif out.is_dir() and any(out.iterdir()):
+        raise ConfigError(
+            f"--out: '{out}' is a non-empty folder that is not a stillbox-gen dataset"
+        )
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise ConfigError(f"--out: cannot create '{out}' ({e.strerror})") from None
+    if not os.access(out, os.W_OK):
+        raise ConfigError(f"--out: '{out}' is not writable")
+    state = dataset_info(cfg, scenes, complete=False)
+    formats.atomic_write_json(existing, state, indent=2)
+    (out / MANIFEST).unlink(missing_ok=True)
+
+
+def dataset_info(cfg: DatasetConfig, scenes: int, complete: bool, **extra) -> dict:
+    r = cfg.render
+    return {
+        "format_version": formats.FORMAT_VERSION,
+        "complete": complete,
+        "versions": versions(),
+        "preset": cfg.preset,
+        "seed": cfg.seed,
+        "fingerprint": cfg.fingerprint(),
+        "scenes": scenes,
+        "frames_per_scene": cfg.camera.frames,
+        "chunk_size": formats.CHUNK_SIZE,
+        "render": {
+            "engine": "CYCLES",
+            "device": "CPU",
+            "samples": r.samples,
+            "denoiser": "OPENIMAGEDENOISE" if r.denoise else None,
+            "max_bounces": r.max_bounces,
+            "view_transform": "Standard",
+            "rgb": f"8-bit sRGB {r.image_format}",
+            "depth": formats.DEPTH_CONVENTION,
+            "noise_seed": "per frame, derived from the scene seed",
+        },
+        "config": cfg.to_dict(),
+        **extra,
+    }
+
+
+def pending_indices(out: Path, scenes: int) -> list[int]:
+    return [k for k in range(scenes) if not formats.record_path(out, k).is_file()]
+
+
+# ---------------------------------------------------------------- workers (bpy-free trampolines)
+
+
+def _worker_init(render: dict, width: int, height: int, threads: int, textures: str | None):
+    from .blender.render import init_worker
+
+    init_worker(render, width, height, threads, textures)
+
+
+def _worker_render(spec: dict, tmp_dir: str, image_format: str, legacy: bool) -> dict:
+    from .blender.render import render_scene
+
+    return render_scene(spec, tmp_dir, image_format, legacy)
+
+
+def _tmp_dir(out: Path, index: int) -> Path:
+    return out / formats.chunk_name(index) / f".tmp-{formats.local_index(index):04d}"
+
+
+def commit_scene(out: Path, spec: dict, cfg: DatasetConfig) -> dict:
+    """Move a rendered scene into its chunk folder, then write its record (the completion mark)."""
+    tmp = _tmp_dir(out, spec["index"])
+    chunk_dir = tmp.parent
+    for f in sorted(tmp.iterdir()):
+        os.replace(f, chunk_dir / f.name)
+    record = formats.scene_record(spec, cfg.render.image_format, cfg.render.legacy)
+    rec_path = formats.record_path(out, spec["index"])
+    rec_path.parent.mkdir(exist_ok=True)
+    formats.atomic_write_json(rec_path, record)
+    formats.remove_tree(tmp)
+    return record
+
+
+def render_pending(cfg: DatasetConfig, opts: RunOptions, todo: list[int], summary: Summary):
+    if not todo:
+        return
+    c, mat = cfg.camera, cfg.materials
+    ctx = multiprocessing.get_context("spawn")
+    init_args = (cfg.to_dict()["render"], c.width, c.height, opts.threads, mat.textures_dir)
+    bar = tqdm(
+        total=opts.scenes,
+        initial=opts.scenes - len(todo),
+        unit="scene",
+        disable=not opts.progress,
+        dynamic_ncols=True,
+    )
+    t0 = time.perf_counter()
+    queue = iter(todo)
+    with ProcessPoolExecutor(
+        max_workers=opts.workers,
+        mp_context=ctx,
+        initializer=_worker_init,
+        initargs=init_args,
+        max_tasks_per_child=opts.recycle_after,
+    ) as pool:
+        running: dict = {}
+
+        def submit_next() -> None:
+            index = next(queue, None)
+            if index is None:
+                return
+            spec = sample_scene(cfg, index).to_dict()
+            tmp = _tmp_dir(opts.out, index)
+            formats.remove_tree(tmp)
+            tmp.mkdir(parents=True)
+            fut = pool.submit(
+                _worker_render, spec, str(tmp), cfg.render.image_format, cfg.render.legacy
+            )
+            running[fut] = spec
+
+        try:
+            for _ in range(2 * opts.workers):
+                submit_next()
+            while running:
+                done, _ = wait(running, return_when=FIRST_COMPLETED)
+                for fut in done:
+                    spec = running.pop(fut)
+                    try:
+                        stats = fut.result()
+                    except Exception as e:  # a scene that cannot render stops the run
+                        raise RuntimeError(
+                            f"scene {spec['index']} failed to render ({type(e).__name__}: {e}); "
+                            "finished scenes are kept, re-run the same command to resume"
+                        ) from e
+                    commit_scene(opts.out, spec, cfg)
+                    summary.rendered_now += 1
+                    summary.peak_rss_mb = max(summary.peak_rss_mb, stats["peak_rss_mb"])
+                    bar.update(1)
+                    elapsed = time.perf_counter() - t0
+                    bar.set_postfix(fps=f"{summary.rendered_now * c.frames / elapsed:.1f}")
+                    submit_next()
+        except BaseException:
+            pool.shutdown(wait=False, cancel_futures=True)
+            raise
+        finally:
+            bar.close()
+
+
+def finalize(out: Path, cfg: DatasetConfig, scenes: int, run_info: dict) -> Summary:
+    """Write every chunk's metadata.json, the manifest and a complete dataset.json."""
+    records = [json.loads(formats.record_path(out, k).read_text()) for k in range(scenes)]
+    args = formats.chunk_args(cfg.to_dict(), generator_name())
+    for start in range(0, scenes, formats.CHUNK_SIZE):
+        chunk = records[start : start + formats.CHUNK_SIZE]
+        meta = {"args": args, "scenes": chunk}
+        formats.atomic_write_json(out / formats.chunk_name(start) / "metadata.json", meta)
+    table = manifest.write_manifest(out / MANIFEST, records, cfg.seed, cfg.split)
+    splits = table.column("split").to_pylist()
+    frames = cfg.camera.frames
+    split_counts = {s: splits.count(s) // frames for s in manifest.SPLITS}
+    summary = Summary(
+        scenes=scenes,
+        frames=scenes * frames,
+        rejected=sum(r["rejected"] for r in records),
+        split_counts=split_counts,
+    )
+    info = dataset_info(
+        cfg,
+        scenes,
+        complete=True,
+        frames=summary.frames,
+        rejected_scenes=summary.rejected,
+        split_scenes=split_counts,
+        run=run_info,
+    )
+    formats.atomic_write_json(out / DATASET_JSON, info, indent=2)
+    return summary
+
+
+def folder_size(path: Path) -> int:
+    return sum(f.stat().st_size for f in path.rglob("*") if f.is_file())
+
+
+def generate(cfg: DatasetConfig, opts: RunOptions) -> Summary:
+    prepare_output(opts.out, cfg, opts.scenes)
+    todo = pending_indices(opts.out, opts.scenes)
+    summary = Summary()
+    t0 = time.perf_counter()
+    render_pending(cfg, opts, todo, summary)
+    seconds = time.perf_counter() - t0
+    run_info = {
+        "seconds": round(seconds, 3),
+        "scenes_rendered": summary.rendered_now,
+        "workers": opts.workers,
+        "threads_per_worker": opts.threads,
+        "peak_rss_mb_per_worker": round(summary.peak_rss_mb, 1),
+    }
+    final = finalize(opts.out, cfg, opts.scenes, run_info)
+    final.rendered_now, final.seconds, final.peak_rss_mb = (
+        summary.rendered_now,
+        seconds,
+        summary.peak_rss_mb,
+    )
+    final.bytes = folder_size(opts.out)
+    return final

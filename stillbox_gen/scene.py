@@ -1,0 +1,321 @@
+"""Plain, serialisable scene descriptions and their random sampling (no Blender here).
+
+Scene ``k`` of a dataset depends only on ``(seed, k)`` and the :class:`DatasetConfig`: its random
+stream is ``numpy.random.default_rng(SeedSequence([seed, k]))``. Blender only renders a
+:class:`SceneSpec`; every random choice is made here.
+
+World frame: right-handed, metres, +Z up (for the sun). The first camera position is the origin.
+Camera poses are OpenCV camera-to-world matrices (x right, y down, z forward).
+"""
+
+from __future__ import annotations
+
+import colorsys
+import math
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from . import camera, shapes
+from .config import DatasetConfig, MaterialsConfig
+
+PATTERNS = ("noise", "voronoi", "wave", "checker", "brick", "magic", "gradient_stripes")
+MAX_ATTEMPTS = 1000
+
+
+@dataclass
+class MaterialSpec:
+    """Surface description. Colours are linear RGB in [0, 1]; ``scale`` in features per metre."""
+
+    kind: str  # "procedural" | "image" | "plain"
+    pattern: str | None  # one of PATTERNS for procedural, else None
+    colors: list[list[float]]  # colour-ramp stops (procedural), one colour (plain), tint (image)
+    positions: list[float]  # colour-ramp stop positions in [0, 1]
+    scale: float  # texture features (or image tiles) per metre
+    detail: float  # pattern-specific: noise detail, voronoi randomness, wave distortion...
+    offset: list[float]  # texture-space offset in metres
+    roughness: float
+    metallic: float
+    image: str | None  # file name in the textures folder, for kind == "image"
+
+
+@dataclass
+class PrimitiveSpec:
+    kind: str  # see shapes.py for the meaning of dimensions
+    dimensions: list[float]  # local bounding box (dx, dy, dz), metres
+    location: list[float]  # world, metres
+    rotation: list[float]  # world orientation quaternion [w, x, y, z]
+    material: MaterialSpec
+
+
+@dataclass
+class BoxSpec:
+    """Axis-aligned box of walls seen from inside; walls cast no shadows."""
+
+    center: list[float]
+    half_extents: list[float]
+    material: MaterialSpec
+
+
+@dataclass
+class LightSpec:
+    sun_direction: list[float]  # unit vector along which sunlight travels (world)
+    sun_strength: float  # W/m^2
+    sun_color: list[float]
+    ambient_color: list[float]  # world background colour (reaches inside: walls cast no shadow)
+    ambient_strength: float
+
+
+@dataclass
+class CameraSpec:
+    """Intrinsics and per-frame poses. Poses are OpenCV cam2world 4x4 (row-major lists)."""
+
+    width: int
+    height: int
+    K: list[list[float]]
+    time_step: float  # seconds between frames
+    speed: list[float]  # m/s in the first frame's camera axes; frame i at i*speed*time_step
+    orientation: list[list[float]]  # per frame [w,x,y,z] of R_cam0<-cam_i, or [] if none
+    cam2world: list[list[list[float]]]
+    near_clip: float
+    far_clip: float
+
+
+@dataclass
+class SceneSpec:
+    index: int  # global scene index in the dataset
+    seed: int  # 63-bit seed of this scene (render noise is derived from it)
+    rejected: int  # sampled scenes rejected before this one (camera path hit an object)
+    camera: CameraSpec
+    primitives: list[PrimitiveSpec]
+    box: BoxSpec
+    light: LightSpec
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @staticmethod
+    def from_dict(d: dict) -> SceneSpec:
+        prims = [
+            PrimitiveSpec(**{**p, "material": MaterialSpec(**p["material"])})
+            for p in d["primitives"]
+        ]
+        box = BoxSpec(**{**d["box"], "material": MaterialSpec(**d["box"]["material"])})
+        return SceneSpec(
+            index=d["index"],
+            seed=d["seed"],
+            rejected=d["rejected"],
+            camera=CameraSpec(**d["camera"]),
+            primitives=prims,
+            box=box,
+            light=LightSpec(**d["light"]),
+        )
+
+
+def _rounded(x) -> list:
+    """Plain floats for JSON (float64 round-trips exactly through json)."""
+    return np.asarray(x, dtype=float).tolist()
+
+
+def _uniform(rng: np.random.Generator, r: tuple[float, float]) -> float:
+    return float(rng.uniform(r[0], r[1]))
+
+
+def _log_uniform(rng: np.random.Generator, lo: float, hi: float) -> float:
+    return float(math.exp(rng.uniform(math.log(lo), math.log(hi))))
+
+
+def _colour(rng: np.random.Generator, value: float) -> list[float]:
+    r, g, b = colorsys.hsv_to_rgb(rng.random(), rng.uniform(0.1, 0.9), value)
+    return [c**2.2 for c in (r, g, b)]  # sRGB-ish to linear
+
+
+def sample_material(
+    rng: np.random.Generator,
+    cfg: MaterialsConfig,
+    scale_range: tuple[float, float],
+    allow_plain: bool = True,
+) -> MaterialSpec:
+    """One surface. ``scale_range`` (features per metre) depends on the typical viewing distance."""
+    use_image = bool(cfg.texture_files) and rng.random() < cfg.texture_ratio
+    plain = not use_image and rng.random() < cfg.plain_ratio and allow_plain
+    mirror = rng.random() < cfg.mirror_ratio
+    glossy = rng.random() < cfg.glossy_ratio
+    roughness = 0.02 if mirror else float(rng.uniform(0.05, 0.3) if glossy else rng.uniform(0.5, 1))
+    common = dict(
+        roughness=roughness,
+        metallic=1.0 if mirror else 0.0,
+        scale=_log_uniform(rng, *scale_range),
+        offset=_rounded(rng.uniform(-100, 100, size=3)),
+    )
+    if use_image:
+        image = cfg.texture_files[int(rng.integers(len(cfg.texture_files)))]
+        tint = [1.0, 1.0, 1.0] if mirror else _rounded(rng.uniform(0.7, 1.0, size=3))
+        return MaterialSpec(
+            "image", None, colors=[tint], positions=[], detail=0.0, image=image, **common
+        )
+    if plain:
+        colour = _colour(rng, rng.uniform(0.1, 1))
+        return MaterialSpec(
+            "plain", None, colors=[colour], positions=[], detail=0.0, image=None, **common
+        )
+    pattern = PATTERNS[int(rng.integers(len(PATTERNS)))]
+    n = int(rng.integers(2, 5))
+    # alternate dark and bright stops so every pattern has visible contrast
+    colors = [
+        _colour(rng, rng.uniform(0.02, 0.35) if i % 2 else rng.uniform(0.5, 1.0)) for i in range(n)
+    ]
+    # stops spread over [0.25, 0.75], where most pattern values fall
+    positions = _rounded(0.25 + 0.5 * (np.arange(n) + rng.uniform(0.2, 0.8, size=n)) / n)
+    return MaterialSpec(
+        "procedural",
+        pattern,
+        colors=colors,
+        positions=positions,
+        detail=float(rng.uniform(0, 1)),
+        image=None,
+        **common,
+    )
+
+
+def primitive_dimensions(rng: np.random.Generator, kind: str, size: float) -> list[float]:
+    """Local bounding box of a primitive whose largest extent is ``size`` metres."""
+    a = rng.uniform(0.5, 1.0)
+    if kind == "cube":
+        d = rng.uniform(0.5, 1.0, size=3)
+        return _rounded(size * d / d.max())
+    if kind == "slab":
+        return _rounded([size, size * a, size * rng.uniform(0.03, 0.1)])
+    if kind == "sphere":
+        return [size] * 3
+    if kind in ("cylinder", "cone"):
+        if rng.random() < 0.5:
+            return [size, size, size * a]
+        return [size * a, size * a, size]
+    if kind == "torus":
+        ratio = rng.uniform(0.15, 0.5)  # minor / major radius
+        major = size / 2 / (1 + ratio)
+        return [size, size, 2 * major * ratio]
+    raise ValueError(kind)
+
+
+def sample_camera(rng: np.random.Generator, cfg: DatasetConfig) -> CameraSpec:
+    c = cfg.camera
+    r0 = camera.random_rotation(rng) if c.random_orientation else np.eye(3)
+    direction = camera.random_unit_vector(rng)  # in the first frame's camera axes
+    speed = direction * c.displacement / c.time_step
+    spin_axis = camera.random_unit_vector(rng)
+    rotating = c.rotation_noise_deg > 0 or c.rotation_speed_deg > 0
+    poses, quats = [], []
+    for i in range(c.frames):
+        rel = np.eye(3)
+        if rotating:
+            spin = spin_axis * math.radians(c.rotation_speed_deg) * i
+            noise = rng.normal(0.0, math.radians(c.rotation_noise_deg), size=3)
+            rel = camera.rotation_vector_to_matrix(spin) @ camera.rotation_vector_to_matrix(noise)
+            quats.append(_rounded(camera.matrix_to_quat(rel)))
+        position = r0 @ (direction * c.displacement * i)
+        poses.append(_rounded(camera.pose_matrix(r0 @ rel, position)))
+    return CameraSpec(
+        width=c.width,
+        height=c.height,
+        K=_rounded(c.K()),
+        time_step=c.time_step,
+        speed=_rounded(speed),
+        orientation=quats,
+        cam2world=poses,
+        near_clip=cfg.render.near_clip,
+        far_clip=cfg.render.max_distance,
+    )
+
+
+def sample_primitive(
+    rng: np.random.Generator, cfg: DatasetConfig, cam: CameraSpec
+) -> PrimitiveSpec:
+    o = cfg.objects
+    kind = o.kinds[int(rng.integers(len(o.kinds)))]
+    size = _uniform(rng, o.size_range)
+    dims = primitive_dimensions(rng, kind, size)
+    distance = _uniform(rng, o.distance_range)
+    if rng.random() < o.behind_fraction:
+        ray = camera.random_unit_vector(rng)
+    else:  # uniformly over the first frame's image
+        u = rng.uniform(-0.5, cam.width - 0.5)
+        v = rng.uniform(-0.5, cam.height - 0.5)
+        ray = np.linalg.solve(np.array(cam.K), [u, v, 1.0])
+        ray /= np.linalg.norm(ray)
+    pose0 = np.array(cam.cam2world[0])
+    location = pose0[:3, :3] @ (ray * distance) + pose0[:3, 3]
+    rotation = camera.matrix_to_quat(camera.random_rotation(rng))
+    material = sample_material(rng, cfg.materials, (0.3, 3.0))
+    return PrimitiveSpec(kind, dims, _rounded(location), _rounded(rotation), material)
+
+
+def path_hits(prim: PrimitiveSpec, cam: CameraSpec, clearance: float) -> bool:
+    """True if the camera centre comes within ``clearance`` metres of the primitive (or inside)."""
+    p0 = np.array(cam.cam2world[0])[:3, 3]
+    p1 = np.array(cam.cam2world[-1])[:3, 3]
+    n = max(2, int(math.ceil(np.linalg.norm(p1 - p0) / 0.005)) + 1)
+    pts = p0 + np.linspace(0, 1, n)[:, None] * (p1 - p0)
+    rot = camera.quat_to_matrix(prim.rotation)
+    local = (pts - np.array(prim.location)) @ rot  # R^T (p - t), row-wise
+    return bool(
+        np.any(shapes.signed_distance(prim.kind, np.array(prim.dimensions), local) < clearance)
+    )
+
+
+def sample_light(rng: np.random.Generator, cfg: DatasetConfig) -> LightSpec:
+    lc = cfg.light
+    elevation = math.radians(_uniform(rng, lc.sun_elevation_range_deg))
+    azimuth = rng.uniform(0, 2 * math.pi)
+    to_sun = [
+        math.cos(elevation) * math.cos(azimuth),
+        math.cos(elevation) * math.sin(azimuth),
+        math.sin(elevation),
+    ]
+    jitter = lambda: _rounded(1.0 - rng.uniform(0, lc.colour_jitter, size=3))  # noqa: E731
+    return LightSpec(
+        sun_direction=_rounded(-np.array(to_sun)),
+        sun_strength=_uniform(rng, lc.sun_strength_range),
+        sun_color=jitter(),
+        ambient_color=jitter(),
+        ambient_strength=_uniform(rng, lc.ambient_strength_range),
+    )
+
+
+def sample_box(rng: np.random.Generator, cfg: DatasetConfig) -> BoxSpec:
+    b = cfg.box
+    return BoxSpec(
+        center=_rounded(rng.uniform(-b.offset_max, b.offset_max, size=3)),
+        half_extents=_rounded(rng.uniform(*b.half_extent_range, size=3)),
+        material=sample_material(rng, cfg.materials, (0.05, 0.5), allow_plain=False),
+    )
+
+
+def scene_seed(seed: int, index: int) -> int:
+    """63-bit seed of scene ``index`` (also the root of its random stream)."""
+    return int(
+        np.random.SeedSequence([seed, index]).generate_state(1, np.uint64)[0] >> np.uint64(1)
+    )
+
+
+def sample_scene(cfg: DatasetConfig, index: int) -> SceneSpec:
+    """Scene ``index`` of the dataset, resampled until the camera path is clear of objects."""
+    rng = np.random.default_rng(np.random.SeedSequence([cfg.seed, index]))
+    for attempt in range(MAX_ATTEMPTS):
+        cam = sample_camera(rng, cfg)
+        prims = [sample_primitive(rng, cfg, cam) for _ in range(cfg.objects.count)]
+        if not any(path_hits(p, cam, cfg.objects.path_clearance) for p in prims):
+            return SceneSpec(
+                index=index,
+                seed=scene_seed(cfg.seed, index),
+                rejected=attempt,
+                camera=cam,
+                primitives=prims,
+                box=sample_box(rng, cfg),
+                light=sample_light(rng, cfg),
+            )
+    raise RuntimeError(
+        f"scene {index}: {MAX_ATTEMPTS} samples all put an object on the camera path; "
+        "lower objects.count or raise objects.distance_range"
+    )
