@@ -146,12 +146,11 @@ def generate(**o) -> None:
         threads=o["threads"],
         progress=not o["quiet"],
     )
-    click.echo(
+    banner = (
         f"stillbox-gen: {o['scenes']} scenes of {c.frames} frames at {c.width}x{c.height} "
-        f"(preset {cfg.preset}, seed {cfg.seed}) -> {out}",
-        err=True,
+        f"(preset {cfg.preset}, seed {cfg.seed}) -> {out}"
     )
-    summary = run(cfg, opts)
+    summary = run(cfg, opts, announce=lambda: click.echo(banner, err=True))
     click.echo("\n".join(["done:", *("  " + line for line in summary.lines())]), err=True)
 
 

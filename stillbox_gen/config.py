@@ -90,7 +90,7 @@ class BoxConfig:
 class LightConfig:
     sun_strength_range: tuple[float, float] = (2.0, 6.0)  # W/m^2
     sun_elevation_range_deg: tuple[float, float] = (15.0, 90.0)
-    ambient_strength_range: tuple[float, float] = (0.3, 1.0)  # world background strength
+    ambient_strength_range: tuple[float, float] = (0.5, 1.5)  # world background strength
     colour_jitter: float = 0.15  # max deviation of light colour channels from white
 
 

@@ -283,8 +283,10 @@ def folder_size(path: Path) -> int:
     return sum(f.stat().st_size for f in path.rglob("*") if f.is_file())
 
 
-def generate(cfg: DatasetConfig, opts: RunOptions) -> Summary:
+def generate(cfg: DatasetConfig, opts: RunOptions, announce=lambda: None) -> Summary:
+    """Render and index a dataset; ``announce`` runs once the output folder is accepted."""
     prepare_output(opts.out, cfg, opts.scenes)
+    announce()
     todo = pending_indices(opts.out, opts.scenes)
     summary = Summary()
     t0 = time.perf_counter()

@@ -212,6 +212,8 @@ def sample_camera(rng: np.random.Generator, cfg: DatasetConfig) -> CameraSpec:
         if rotating:
             spin = spin_axis * math.radians(c.rotation_speed_deg) * i
             noise = rng.normal(0.0, math.radians(c.rotation_noise_deg), size=3)
+            if i == 0:  # the first frame defines the reference axes
+                noise[:] = 0.0
             rel = camera.rotation_vector_to_matrix(spin) @ camera.rotation_vector_to_matrix(noise)
             quats.append(_rounded(camera.matrix_to_quat(rel)))
         position = r0 @ (direction * c.displacement * i)
@@ -247,7 +249,7 @@ def sample_primitive(
     pose0 = np.array(cam.cam2world[0])
     location = pose0[:3, :3] @ (ray * distance) + pose0[:3, 3]
     rotation = camera.matrix_to_quat(camera.random_rotation(rng))
-    material = sample_material(rng, cfg.materials, (0.3, 3.0))
+    material = sample_material(rng, cfg.materials, (0.5, 4.0))
     return PrimitiveSpec(kind, dims, _rounded(location), _rounded(rotation), material)
 
 
@@ -288,7 +290,7 @@ def sample_box(rng: np.random.Generator, cfg: DatasetConfig) -> BoxSpec:
     return BoxSpec(
         center=_rounded(rng.uniform(-b.offset_max, b.offset_max, size=3)),
         half_extents=_rounded(rng.uniform(*b.half_extent_range, size=3)),
-        material=sample_material(rng, cfg.materials, (0.05, 0.5), allow_plain=False),
+        material=sample_material(rng, cfg.materials, (0.03, 0.3), allow_plain=False),
     )
 
 

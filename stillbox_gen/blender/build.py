@@ -38,8 +38,10 @@ def clear_scene() -> None:
 def _pattern(nodes, pattern: str, detail: float):
     node_type, output = _PATTERN_NODES[pattern]
     tex = nodes.new(node_type)
+    if "Scale" in tex.inputs:  # the Mapping node carries the scale (features per metre)
+        tex.inputs["Scale"].default_value = 1.0
     if pattern == "noise":
-        tex.inputs["Detail"].default_value = 1.0 + 6.0 * detail
+        tex.inputs["Detail"].default_value = 3.0 * detail
     elif pattern == "voronoi":
         tex.inputs["Randomness"].default_value = 0.5 + 0.5 * detail
     elif pattern == "wave":

@@ -22,10 +22,17 @@ from . import build
 _STATE: dict = {}
 
 
-def init_worker(render: dict, width: int, height: int, threads: int, textures_dir: str | None):
+def init_worker(
+    render: dict,
+    width: int,
+    height: int,
+    threads: int,
+    textures_dir: str | None,
+    silence_stdout: bool = True,
+) -> None:
     """Configure Cycles once per process. ``render`` is RenderConfig as a dict."""
-    devnull = os.open(os.devnull, os.O_WRONLY)
-    os.dup2(devnull, 1)  # Blender prints a line per saved file on stdout
+    if silence_stdout:  # Blender prints a line per saved file on stdout
+        os.dup2(os.open(os.devnull, os.O_WRONLY), 1)
     bpy.ops.wm.read_factory_settings(use_empty=True)
     scene = bpy.context.scene
     scene.render.engine = "CYCLES"

@@ -1,0 +1,231 @@
+"""Real tiny renders (64 px) checked against independent geometry."""
+
+from __future__ import annotations
+
+import json
+import multiprocessing
+import os
+import signal
+import subprocess
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from conftest import CLI, run_cli
+
+from stillbox_gen import camera, config, formats, generate, scene
+from stillbox_gen.manifest import read_manifest
+
+pytestmark = pytest.mark.render
+
+
+def render_spec(spec: scene.SceneSpec, cfg: config.DatasetConfig, out: Path) -> None:
+    """Render one SceneSpec in a worker process, exactly as the generator does."""
+    c = cfg.camera
+    init = (cfg.to_dict()["render"], c.width, c.height, 0, None)
+    ctx = multiprocessing.get_context("spawn")
+    with ProcessPoolExecutor(1, ctx, initializer=generate._worker_init, initargs=init) as pool:
+        pool.submit(generate._worker_render, spec.to_dict(), str(out), "png", False).result()
+
+
+def wall_scene(width: int, height: int, K: np.ndarray, wall_z: float, step: float, frames: int):
+    """No objects, identity orientation, camera moving `step` m/frame towards a wall at wall_z."""
+    base = config.load_preset("stillbox")
+    cfg = config.replace(
+        base,
+        camera={"width": width, "height": height, "frames": frames, "random_orientation": False,
+                "focal_px": float(K[0, 0]), "principal_point": (float(K[0, 2]), float(K[1, 2]))},
+        objects={"count": 0},
+    )  # fmt: skip
+    spec = scene.sample_scene(cfg, 0)
+    spec.box.center, spec.box.half_extents = [0.0, 0.0, 0.0], [100.0, 100.0, wall_z]
+    spec.camera.cam2world = [
+        camera.pose_matrix(np.eye(3), [0.0, 0.0, step * i]).tolist() for i in range(frames)
+    ]
+    return cfg, spec
+
+
+def test_wall_facing_camera_has_constant_depth_equal_to_its_distance(tmp_path):
+    """Planar depth of a fronto-parallel wall is its distance, at every pixel and frame."""
+    K = camera.intrinsics_matrix(40.0, 27.0, 20.5)  # off-centre, non-square image
+    cfg, spec = wall_scene(64, 48, K, wall_z=12.0, step=0.5, frames=3)
+    render_spec(spec, cfg, tmp_path)
+    for f in range(3):
+        depth = formats.read_depth_exr(tmp_path / formats.depth_name(0, f))
+        assert depth.shape == (48, 64)
+        np.testing.assert_allclose(depth, 12.0 - 0.5 * f, rtol=1e-5)
+
+
+def test_rendered_sphere_matches_pinhole_projection_of_K(tmp_path):
+    """A sphere at a known place renders where K projects it, with ray-traced planar depth."""
+    K = camera.intrinsics_matrix(45.0, 40.0, 18.0)
+    cfg, spec = wall_scene(72, 48, K, wall_z=30.0, step=0.1, frames=2)
+    centre, radius = np.array([0.8, -0.4, 4.0]), 0.8
+    material = spec.box.material
+    spec.primitives = [
+        scene.PrimitiveSpec("sphere", [2 * radius] * 3, centre.tolist(), [1, 0, 0, 0], material)
+    ]
+    render_spec(spec, cfg, tmp_path)
+    depth = formats.read_depth_exr(tmp_path / formats.depth_name(0, 0))
+    # analytic ray-sphere intersection for every pixel
+    u, v = np.meshgrid(np.arange(72.0), np.arange(48.0))
+    rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], -1)
+    a = (rays**2).sum(-1)
+    b = -2 * rays @ centre
+    disc = b**2 - 4 * a * (centre @ centre - radius**2)
+    hit = disc > 0
+    t = (-b - np.sqrt(np.where(hit, disc, 0))) / (2 * a)  # planar depth since ray z = 1
+    inner = hit & (disc > 0.3 * disc.max())  # away from grazing angles at the silhouette
+    assert inner.sum() > 80
+    # the mesh is inscribed in the sphere: never nearer, and at most a few mm farther
+    excess = depth[inner] - t[inner]
+    assert excess.min() > -1e-3 and excess.max() < 0.02, (excess.min(), excess.max())
+    assert np.all(depth[~hit] > 29)  # the wall behind, not the sphere
+    uc, vc = camera.project(centre[None], K)[0]
+    ys, xs = np.nonzero(depth < 20)
+    assert abs(xs.mean() - uc) < 0.5 and abs(ys.mean() - vc) < 0.5
+
+
+def load_scene(root: Path, index: int):
+    chunk = root / formats.chunk_name(index)
+    meta = json.loads((chunk / "metadata.json").read_text())
+    rec = meta["scenes"][formats.local_index(index)]
+    frames = [cv2.imread(str(chunk / n)).astype(np.float32) for n in rec["rgb"]]
+    depths = [formats.read_depth_exr(chunk / n) for n in rec["depth_exr"]]
+    return rec, frames, depths
+
+
+def warp_errors(rec: dict, frames, depths, i: int, j: int) -> tuple[float, float, int]:
+    """Resample frame j at the projections of frame i's pixels (depth_i, K, poses).
+
+    Returns (warp error, no-warp error, pixels used) in grey levels, over pixels that move by
+    more than 1 px; pixels occluded in frame j or leaving it are excluded by a depth check.
+    """
+    K = np.array(rec["K"])
+    h, w = depths[i].shape
+    c2w = [np.array(m) for m in rec["cam2world"]]
+    rel = camera.invert_pose(c2w[j]) @ c2w[i]
+    pts = camera.backproject(depths[i], K).reshape(-1, 3)
+    pts_j = pts @ rel[:3, :3].T + rel[:3, 3]
+    uv = camera.project(pts_j, K).reshape(h, w, 2).astype(np.float32)
+    mx, my = uv[..., 0], uv[..., 1]
+    warped = cv2.remap(frames[j], mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    dj = cv2.remap(depths[j], mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    z = pts_j[:, 2].reshape(h, w)
+    grid_u, grid_v = np.meshgrid(np.arange(w), np.arange(h))
+    moving = np.hypot(mx - grid_u, my - grid_v) > 1.0
+    inside = (mx >= 0) & (mx <= w - 1) & (my >= 0) & (my <= h - 1)
+    valid = inside & moving & (z > 0) & (np.abs(dj - z) < 0.01 * z)
+    err_warp = np.abs(warped - frames[i]).mean(-1)[valid].mean()
+    err_none = np.abs(frames[j] - frames[i]).mean(-1)[valid].mean()
+    return float(err_warp), float(err_none), int(valid.sum())
+
+
+@pytest.mark.parametrize("which", ["default_dataset", "custom_dataset"])
+def test_warping_with_depth_and_motion_reproduces_the_frame(which, request):
+    """Frame j warped into frame i with depth, K and the recorded poses matches frame i."""
+    root = request.getfixturevalue(which)
+    checked = 0
+    for index in range(3):
+        rec, frames, depths = load_scene(root, index)
+        err_warp, err_none, used = warp_errors(rec, frames, depths, 0, 9)
+        if used < 100:  # far walls barely move: 0.9 m at 60 m is under a pixel
+            continue
+        checked += 1
+        assert err_warp < 0.6 * err_none, (index, err_warp, err_none, used)
+    assert checked >= 2
+
+
+def test_speed_and_orientation_agree_with_the_poses(default_dataset, custom_dataset):
+    """Original keys: frame i sits at i*speed*time_step in frame-0 axes, rotated by orientation."""
+    for root in (default_dataset, custom_dataset):
+        rec, _, _ = load_scene(root, 0)
+        c2w = [np.array(m) for m in rec["cam2world"]]
+        for i, m in enumerate(c2w):
+            rel = camera.invert_pose(c2w[0]) @ m
+            expected = i * np.array(rec["speed"]) * rec["time_step"]
+            np.testing.assert_allclose(rel[:3, 3], expected, atol=1e-9)
+            if rec["orientation"]:
+                np.testing.assert_allclose(
+                    rel[:3, :3], camera.quat_to_matrix(rec["orientation"][i]), atol=1e-9
+                )
+            else:
+                np.testing.assert_allclose(rel[:3, :3], np.eye(3), atol=1e-12)
+
+
+def test_dataset_validates_and_manifest_has_a_row_per_frame(default_dataset):
+    proc = run_cli("validate", default_dataset)
+    assert "valid (4 scenes, 40 frames, 40 manifest rows)" in proc.stdout
+    table = read_manifest(default_dataset / "manifest.parquet")
+    assert table.num_rows == 40
+    info = json.loads((default_dataset / "dataset.json").read_text())
+    assert info["complete"] and info["scenes"] == 4 and info["frames"] == 40
+
+
+def test_custom_dataset_features_are_rendered_and_recorded(custom_dataset, photo_dir):
+    """Photos, K, non-square frames and legacy .jpg/.npy files all land in the dataset."""
+    assert run_cli("validate", custom_dataset).returncode == 0
+    meta = json.loads((custom_dataset / "0" / "metadata.json").read_text())
+    rec = meta["scenes"][0]
+    assert rec["resolution"] == [80, 48]
+    assert rec["K"] == [[50.0, 0.0, 30.0], [0.0, 50.0, 20.0], [0.0, 0.0, 1.0]]
+    assert len(rec["orientation"]) == 10
+    kinds = [p["material"]["kind"] for s in meta["scenes"] for p in s["primitives"]]
+    assert kinds.count("image") > 10
+    assert {p["material"]["image"] for s in meta["scenes"] for p in s["primitives"]} - {None} <= {
+        "photo0.png", "photo1.png", "photo2.png"
+    }
+    img = cv2.imread(str(custom_dataset / "0" / rec["imgs"][0]))
+    assert rec["imgs"][0].endswith(".jpg") and img.shape == (48, 80, 3)
+    legacy = np.load(custom_dataset / "0" / rec["depth"][0])
+    exr = formats.read_depth_exr(custom_dataset / "0" / rec["depth_exr"][0])
+    np.testing.assert_array_equal(legacy, exr)
+    # OpenCV reads our depth EXR too
+    cv_depth = cv2.imread(str(custom_dataset / "0" / rec["depth_exr"][0]), cv2.IMREAD_UNCHANGED)
+    np.testing.assert_array_equal(cv_depth, exr)
+
+
+def test_preview_draws_a_contact_sheet(default_dataset, tmp_path):
+    out = tmp_path / "sheet.png"
+    run_cli("preview", default_dataset, "--out", out, "--scenes", 2)
+    img = cv2.imread(str(out))
+    assert img is not None and img.shape[0] > 300 and img.std() > 10
+
+
+def _tree(root: Path) -> dict[str, bytes]:
+    return {
+        str(p.relative_to(root)): p.read_bytes()
+        for p in sorted(root.rglob("*"))
+        if p.is_file() and p.name != "dataset.json"
+    }
+
+
+def test_killed_run_resumes_to_the_same_dataset_as_an_uninterrupted_one(tmp_path):
+    """Kill mid-run, re-run: identical files; also independent of --workers."""
+    args = ["--res", "64", "--scenes", "5", "--seed", "11", "--quiet"]
+    run_cli(*args, "--workers", 2, "--out", tmp_path / "a")
+    b = tmp_path / "b"
+    proc = subprocess.Popen([*CLI, *args, "--workers", "1", "--out", str(b)],
+                            start_new_session=True, stderr=subprocess.DEVNULL)  # fmt: skip
+    deadline = time.time() + 300
+    while len(list(b.glob("*/.records/*.json"))) < 2 and time.time() < deadline:
+        time.sleep(0.02)
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
+    done = len(list(b.glob("*/.records/*.json")))
+    assert 2 <= done < 5, f"{done} scenes done before the kill"
+    assert not (b / "manifest.parquet").exists()
+    assert json.loads((b / "dataset.json").read_text())["complete"] is False
+    assert run_cli("validate", b, check=False).returncode == 1  # partial never looks complete
+    resumed = run_cli(*args, "--workers", 1, "--out", b)
+    assert f"({5 - done} rendered now)" in resumed.stderr
+    tree_a, tree_b = _tree(tmp_path / "a"), _tree(b)
+    assert sorted(tree_a) == sorted(tree_b)
+    different = [name for name in tree_a if tree_a[name] != tree_b[name]]
+    assert not different, different[:5]
+    info_a, info_b = (json.loads((d / "dataset.json").read_text()) for d in (tmp_path / "a", b))
+    info_a.pop("run"), info_b.pop("run")
+    assert info_a == info_b
