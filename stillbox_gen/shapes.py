@@ -35,8 +35,8 @@ def _cone2d(rho: np.ndarray, z: np.ndarray, r: float, h: float) -> np.ndarray:
     """Signed distance in the (rho, z) half-plane to the triangle (0,-h/2), (r,-h/2), (0,h/2)."""
     p = np.stack([rho, z], axis=-1)
     a, b, c = np.array([0.0, -h / 2]), np.array([r, -h / 2]), np.array([0.0, h / 2])
+    # the axis edge (c, a) is not a surface: with rho >= 0 the base or the slant is always nearer
     d = np.minimum(_segment_distance(p, a, b), _segment_distance(p, b, c))
-    d = np.minimum(d, _segment_distance(p, c, a))
     # inside: above the base, left of the slanted edge (rho >= 0 always)
     inside = (z >= -h / 2) & (rho * h + (z - h / 2) * r <= 0)
     return np.where(inside, -d, d)

@@ -56,7 +56,7 @@ def test_centred_principal_point_needs_no_shift(width, height):
 
 
 def test_shift_signs():
-    """Principal point left of centre gives shift_x > 0; below centre (larger cy) gives shift_y > 0."""
+    """A principal point left of centre gives shift_x > 0; a larger cy gives shift_y > 0."""
     w, h = 640, 480
     cx0, cy0 = camera.centred_principal_point(w, h)
     left = camera.blender_camera_settings(camera.intrinsics_matrix(500.0, cx0 - 10, cy0), w, h)

@@ -176,7 +176,9 @@ def test_custom_dataset_features_are_rendered_and_recorded(custom_dataset, photo
     kinds = [p["material"]["kind"] for s in meta["scenes"] for p in s["primitives"]]
     assert kinds.count("image") > 10
     assert {p["material"]["image"] for s in meta["scenes"] for p in s["primitives"]} - {None} <= {
-        "photo0.png", "photo1.png", "photo2.png"
+        "photo0.png",
+        "photo1.png",
+        "photo2.png",
     }
     img = cv2.imread(str(custom_dataset / "0" / rec["imgs"][0]))
     assert rec["imgs"][0].endswith(".jpg") and img.shape == (48, 80, 3)
