@@ -24,6 +24,19 @@ class DefaultGroup(click.Group):
             args = ["generate", *args]
         return super().parse_args(ctx, args)
 
+    def format_help(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
+        super().format_help(ctx, formatter)
+        gen = self.commands["generate"]
+        sub = click.Context(gen, info_name="generate", parent=ctx)
+        params = [
+            p
+            for p in gen.get_params(sub)
+            if not isinstance(p, click.Option) or "--help" not in p.opts
+        ]
+        rows = [r for p in params if (r := p.get_help_record(sub))]
+        with formatter.section("Generate options (stillbox-gen [generate] ...)"):
+            formatter.write_dl(rows)
+
 
 @click.group(cls=DefaultGroup, context_settings={"help_option_names": ["-h", "--help"]})
 def cli() -> None:
@@ -33,8 +46,6 @@ def cli() -> None:
     stillbox-gen --res 256 --scenes 3000          (same as: stillbox-gen generate ...)
     stillbox-gen validate data/stillbox-256
     stillbox-gen preview data/stillbox-256 --out preview.png
-
-    See 'stillbox-gen generate --help' for every generation option.
     """
 
 

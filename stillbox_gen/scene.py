@@ -34,6 +34,7 @@ class MaterialSpec:
     scale: float  # texture features (or image tiles) per metre
     detail: float  # pattern-specific: noise detail, voronoi randomness, wave distortion...
     offset: list[float]  # texture-space offset in metres
+    rotation: list[float]  # texture-space Euler XYZ rotation, radians (no axis-aligned stripes)
     roughness: float
     metallic: float
     image: str | None  # file name in the textures folder, for kind == "image"
@@ -147,6 +148,7 @@ def sample_material(
         metallic=1.0 if mirror else 0.0,
         scale=_log_uniform(rng, *scale_range),
         offset=_rounded(rng.uniform(-100, 100, size=3)),
+        rotation=_rounded(rng.uniform(0, 2 * math.pi, size=3)),
     )
     if use_image:
         image = cfg.texture_files[int(rng.integers(len(cfg.texture_files)))]

@@ -73,6 +73,7 @@ def make_material(name: str, spec: dict, textures_dir: str | None):
     coords = nodes.new("ShaderNodeTexCoord")
     mapping = nodes.new("ShaderNodeMapping")
     mapping.inputs["Location"].default_value = spec["offset"]
+    mapping.inputs["Rotation"].default_value = spec["rotation"]
     mapping.inputs["Scale"].default_value = (spec["scale"],) * 3
     links.new(coords.outputs["Object"], mapping.inputs["Vector"])
     if spec["kind"] == "image":
