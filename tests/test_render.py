@@ -231,3 +231,18 @@ def test_killed_run_resumes_to_the_same_dataset_as_an_uninterrupted_one(tmp_path
     info_a, info_b = (json.loads((d / "dataset.json").read_text()) for d in (tmp_path / "a", b))
     info_a.pop("run"), info_b.pop("run")
     assert info_a == info_b
+
+
+def test_raising_scenes_extends_a_finished_dataset_without_touching_it(default_dataset, tmp_path):
+    """--scenes 5 on the 4-scene dataset renders one scene; the first four stay byte-identical."""
+    import shutil
+
+    ext = tmp_path / "ext"
+    shutil.copytree(default_dataset, ext)
+    before = _tree(ext)
+    proc = run_cli("--res", 64, "--scenes", 5, "--seed", 3, "--out", ext, "--quiet")
+    assert "(1 rendered now)" in proc.stderr
+    after = _tree(ext)
+    changed = [n for n in before if before[n] != after[n]]
+    assert sorted(changed) == ["0/metadata.json", "manifest.parquet"]
+    assert run_cli("validate", ext).returncode == 0
