@@ -135,6 +135,10 @@ def parse_point(value: str) -> tuple[float, float]:
     is_flag=True,
     help="Also write .jpg frames and .npy depth for the original DepthNet code.",
 )
+@click.option(
+    "--split",
+    help="Shares of scenes in train,val,test (by scene, from (seed, k)).  [default: 0.8,0.1,0.1]",
+)
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 def generate(**o) -> None:
     """Render a dataset (resumes when --out holds an unfinished one with the same parameters)."""
@@ -195,6 +199,14 @@ def build_config(o: dict) -> config.DatasetConfig:
         mats["texture_files"] = config.list_texture_files(str(o["textures"]))
     cfg = config.replace(cfg, camera=cam, render=render, materials=mats)
     cfg = dataclasses.replace(cfg, seed=o["seed"])
+    if o["split"]:
+        try:
+            shares = tuple(float(v) for v in o["split"].split(","))
+        except ValueError:
+            raise ConfigError(
+                f"--split: expected TRAIN,VAL,TEST shares, got '{o['split']}'"
+            ) from None
+        cfg = dataclasses.replace(cfg, split=shares)
     config.validate(cfg)
     return cfg
 

@@ -49,8 +49,27 @@ def custom_dataset(tmp_path_factory, photo_dir) -> Path:
     """Every scene feature on: photos, non-square frames, custom K, rotations, legacy files."""
     out = tmp_path_factory.mktemp("ds") / "custom"
     run_cli(
-        "--res", "80x48", "--focal", 50, "--principal-point", "30,20", "--scenes", 3,
-        "--seed", 5, "--textures", photo_dir, "--rotation-noise", 0.3, "--rotation-speed", 0.5,
-        "--legacy", "--workers", 1, "--out", out, "--quiet",
-    )  # fmt: skip
+        "--res",
+        "80x48",
+        "--focal",
+        50,
+        "--principal-point",
+        "30,20",
+        "--scenes",
+        3,
+        "--seed",
+        5,
+        "--textures",
+        photo_dir,
+        "--rotation-noise",
+        0.3,
+        "--rotation-speed",
+        0.5,
+        "--legacy",
+        "--workers",
+        1,
+        "--out",
+        out,
+        "--quiet",
+    )
     return out

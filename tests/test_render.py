@@ -36,10 +36,16 @@ def wall_scene(width: int, height: int, K: np.ndarray, wall_z: float, step: floa
     base = config.load_preset("stillbox")
     cfg = config.replace(
         base,
-        camera={"width": width, "height": height, "frames": frames, "random_orientation": False,
-                "focal_px": float(K[0, 0]), "principal_point": (float(K[0, 2]), float(K[1, 2]))},
+        camera={
+            "width": width,
+            "height": height,
+            "frames": frames,
+            "random_orientation": False,
+            "focal_px": float(K[0, 0]),
+            "principal_point": (float(K[0, 2]), float(K[1, 2])),
+        },
         objects={"count": 0},
-    )  # fmt: skip
+    )
     spec = scene.sample_scene(cfg, 0)
     spec.box.center, spec.box.half_extents = [0.0, 0.0, 0.0], [100.0, 100.0, wall_z]
     spec.camera.cam2world = [
@@ -210,8 +216,11 @@ def test_killed_run_resumes_to_the_same_dataset_as_an_uninterrupted_one(tmp_path
     args = ["--res", "64", "--scenes", "5", "--seed", "11", "--quiet"]
     run_cli(*args, "--workers", 2, "--out", tmp_path / "a")
     b = tmp_path / "b"
-    proc = subprocess.Popen([*CLI, *args, "--workers", "1", "--out", str(b)],
-                            start_new_session=True, stderr=subprocess.DEVNULL)  # fmt: skip
+    proc = subprocess.Popen(
+        [*CLI, *args, "--workers", "1", "--out", str(b)],
+        start_new_session=True,
+        stderr=subprocess.DEVNULL,
+    )
     deadline = time.time() + 300
     while len(list(b.glob("*/.records/*.json"))) < 2 and time.time() < deadline:
         time.sleep(0.02)

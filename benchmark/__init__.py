@@ -1,0 +1,1 @@
+"""StillBox benchmark: train and score depth-from-motion models on stillbox-gen datasets."""

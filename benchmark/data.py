@@ -1,0 +1,247 @@
+"""Image pairs from a stillbox-gen dataset (manifest.parquet + the chunks' metadata.json).
+
+Training pairs follow the original DepthNet sampling (REFERENCE §3): frame i1 uniform, shift =
+round(2·nominal_shift·U) in {0..6}, i2 = min(last, i1 + shift), swapped with probability 0.5; the
+target is depth(i2) · nominal_shift / |i2 − i1| (100 m when i1 == i2), clipped to [0, 100] m;
+random horizontal and vertical flips. Evaluation pairs are fixed forward pairs (i, i + shift) with
+target depth(i + shift). Inputs are (x/255 − 0.5)/0.2 per channel, frames stacked to 6 channels.
+
+Every random draw comes from ``numpy.random.default_rng([seed, epoch, index])``: the same seed
+gives the same batches whatever the worker count, and a resumed run continues the same sequence.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pyarrow.parquet as pq
+import torch
+from tqdm import tqdm
+
+os.environ.setdefault("OPENCV_IO_ENABLE_OPENEXR", "1")
+import cv2  # noqa: E402
+
+from stillbox_gen.formats import read_depth_exr  # noqa: E402
+
+MAX_DEPTH = 100.0  # metres: training targets and scores are clipped here (REFERENCE §3, §6)
+STILL_TARGET = 100.0  # target for identical frames: "no motion => infinitely far", saturated
+CACHE_LIMIT_BYTES = 8 * 1024**3
+
+
+class DataError(ValueError):
+    """A dataset that cannot be used; the message names the file."""
+
+
+@dataclass
+class Scene:
+    index: int
+    split: str
+    rgb: list[Path]
+    depth: list[Path]
+    speed: np.ndarray  # m/s, camera axes of the first frame
+    time_step: float
+    K: np.ndarray
+
+    @property
+    def displacement(self) -> float:
+        """Metres per frame."""
+        return float(np.linalg.norm(self.speed) * self.time_step)
+
+    def translation(self, i1: int, i2: int) -> np.ndarray:
+        """Camera translation from frame i1 to frame i2, metres, in camera axes (stabilised)."""
+        return (i2 - i1) * self.speed * self.time_step
+
+
+def load_scenes(root: Path, split: str) -> list[Scene]:
+    """Scenes of one split, in index order. Raises DataError naming the faulty file."""
+    root = Path(root)
+    man_path = root / "manifest.parquet"
+    if not man_path.is_file():
+        raise DataError(f"{man_path}: missing (not a finished stillbox-gen dataset)")
+    try:
+        table = pq.read_table(man_path, columns=["scene", "chunk", "split", "frame"]).to_pylist()
+    except Exception as e:  # noqa: BLE001 - report any reader failure with the file name
+        raise DataError(f"{man_path}: unreadable ({e})") from None
+    wanted = sorted({(r["scene"], r["chunk"]) for r in table if r["split"] == split})
+    metas: dict[str, dict] = {}
+    scenes = []
+    for index, chunk in wanted:
+        if chunk not in metas:
+            meta_path = root / chunk / "metadata.json"
+            try:
+                metas[chunk] = json.loads(meta_path.read_text())
+            except (OSError, json.JSONDecodeError) as e:
+                raise DataError(f"{meta_path}: missing or not JSON ({e})") from None
+        rec = metas[chunk]["scenes"][index % 200]
+        if rec["index"] != index:
+            raise DataError(f"{root / chunk / 'metadata.json'}: scene {index} out of order")
+        if rec["orientation"]:
+            raise DataError(
+                f"{root / chunk / 'metadata.json'}: scene {index} has camera rotations; "
+                "these baselines need a stabilised dataset (no --rotation-noise/--rotation-speed)"
+            )
+        scenes.append(
+            Scene(
+                index=index,
+                split=split,
+                rgb=[root / chunk / n for n in rec["rgb"]],
+                depth=[root / chunk / n for n in rec["depth_exr"]],
+                speed=np.array(rec["speed"], dtype=np.float64),
+                time_step=float(rec["time_step"]),
+                K=np.array(rec["K"], dtype=np.float64),
+            )
+        )
+    return scenes
+
+
+def read_rgb(path: Path) -> np.ndarray:
+    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if img is None:
+        raise DataError(f"{path}: missing or unreadable image")
+    return img[..., ::-1].copy()
+
+
+def read_depth(path: Path) -> np.ndarray:
+    try:
+        return read_depth_exr(path)
+    except Exception as e:  # noqa: BLE001
+        raise DataError(f"{path}: missing or unreadable depth ({e})") from None
+
+
+class FrameStore:
+    """Decoded frames and depth maps, all in memory when they fit (else read on demand)."""
+
+    def __init__(self, scenes: list[Scene], cache: bool | None = None, progress: bool = True):
+        self.scenes = scenes
+        first = read_rgb(scenes[0].rgb[0]) if scenes else np.zeros((1, 1, 3), np.uint8)
+        self.height, self.width = first.shape[:2]
+        frames = sum(len(s.rgb) for s in scenes)
+        nbytes = frames * self.height * self.width * 7  # 3 bytes RGB + 4 bytes depth
+        self.cached = nbytes <= CACHE_LIMIT_BYTES if cache is None else cache
+        self.nbytes = nbytes if self.cached else 0
+        if self.cached:
+            n, length = len(scenes), max((len(s.rgb) for s in scenes), default=0)
+            self._rgb = np.zeros((n, length, self.height, self.width, 3), np.uint8)
+            self._depth = np.zeros((n, length, self.height, self.width), np.float32)
+            for k, s in enumerate(
+                tqdm(scenes, desc="caching frames", unit="scene", disable=not progress, leave=False)
+            ):
+                for f in range(len(s.rgb)):
+                    self._rgb[k, f] = self._checked(read_rgb(s.rgb[f]), s.rgb[f])
+                    self._depth[k, f] = self._checked(read_depth(s.depth[f]), s.depth[f])
+
+    def _checked(self, a: np.ndarray, path: Path) -> np.ndarray:
+        if a.shape[:2] != (self.height, self.width):
+            raise DataError(
+                f"{path}: size {a.shape[1]}x{a.shape[0]}, expected {self.width}x{self.height}"
+            )
+        return a
+
+    def rgb(self, k: int, f: int) -> np.ndarray:
+        if self.cached:
+            return self._rgb[k, f]
+        return self._checked(read_rgb(self.scenes[k].rgb[f]), self.scenes[k].rgb[f])
+
+    def depth(self, k: int, f: int) -> np.ndarray:
+        if self.cached:
+            return self._depth[k, f]
+        return self._checked(read_depth(self.scenes[k].depth[f]), self.scenes[k].depth[f])
+
+
+def normalise(img: np.ndarray) -> np.ndarray:
+    """(H, W, 3) uint8 -> (3, H, W) float32, (x/255 - 0.5)/0.2."""
+    return ((img.astype(np.float32) / 255.0 - 0.5) / 0.2).transpose(2, 0, 1)
+
+
+class PairDataset(torch.utils.data.Dataset):
+    """Pairs of one split. ``mode='train'``: one random pair per frame index (original sampling);
+    ``mode='eval'``: every fixed forward pair (i, i + shift).
+
+    Items are dicts: ``input`` (6, H, W) float32, ``target`` (H, W) float32 metres (depth of the
+    second frame, rescaled and clipped in train mode, raw in eval mode), ``translation`` (3,)
+    float32 metres (camera motion from first to second frame, camera axes, after flips), ``K``
+    (3, 3), ``scene``, ``frames`` (i1, i2), ``flips`` (horizontal, vertical).
+    """
+
+    def __init__(self, store: FrameStore, mode: str, shift: int = 3, seed: int = 0):
+        if mode not in ("train", "eval"):
+            raise ValueError(mode)
+        self.store, self.mode, self.shift, self.seed = store, mode, shift, seed
+        self.epoch = 0
+        self.items: list[tuple[int, int]] = []
+        for k, s in enumerate(store.scenes):
+            if mode == "train":
+                self.items += [(k, f) for f in range(len(s.rgb))]
+            else:
+                self.items += [(k, f) for f in range(len(s.rgb) - shift)]
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = epoch
+
+    def __len__(self) -> int:
+        return len(self.items)
+
+    def __getitem__(self, i: int) -> dict:
+        k, f = self.items[i]
+        scene = self.store.scenes[k]
+        if self.mode == "eval":
+            i1, i2 = f, f + self.shift
+            target = self.store.depth(k, i2).copy()
+            flip_h = flip_v = False
+        else:
+            rng = np.random.default_rng([self.seed, self.epoch, i])
+            last = len(scene.rgb) - 1
+            i1 = int(rng.integers(0, last + 1))
+            i2 = min(last, i1 + round(2 * self.shift * rng.uniform()))
+            if rng.uniform() > 0.5:
+                i1, i2 = i2, i1
+            if i1 == i2:
+                target = np.full_like(self.store.depth(k, i2), STILL_TARGET)
+            else:
+                target = self.store.depth(k, i2) * (self.shift / abs(i2 - i1))
+            target = np.clip(target, 0.0, MAX_DEPTH)
+            flip_h, flip_v = rng.uniform() < 0.5, rng.uniform() < 0.5
+        img1, img2 = self.store.rgb(k, i1), self.store.rgb(k, i2)
+        translation = scene.translation(i1, i2)
+        if flip_h:
+            img1, img2, target = img1[:, ::-1], img2[:, ::-1], target[:, ::-1]
+            translation = translation * np.array([-1.0, 1.0, 1.0])
+        if flip_v:
+            img1, img2, target = img1[::-1], img2[::-1], target[::-1]
+            translation = translation * np.array([1.0, -1.0, 1.0])
+        x = np.concatenate([normalise(img1), normalise(img2)], axis=0)
+        return {
+            "input": torch.from_numpy(np.ascontiguousarray(x)),
+            "target": torch.from_numpy(np.ascontiguousarray(target, dtype=np.float32)),
+            "translation": torch.from_numpy(translation.astype(np.float32)),
+            "K": torch.from_numpy(scene.K.astype(np.float32)),
+            "scene": scene.index,
+            "frames": torch.tensor([i1, i2]),
+            "flips": torch.tensor([flip_h, flip_v]),
+        }
+
+
+class EpochSampler(torch.utils.data.Sampler):
+    """Permutation of the dataset drawn from (seed, epoch), split across ranks, skippable."""
+
+    def __init__(self, size: int, seed: int, rank: int = 0, world: int = 1):
+        self.size, self.seed, self.rank, self.world = size, seed, rank, world
+        self.epoch, self.skip = 0, 0
+
+    def set_epoch(self, epoch: int, skip: int = 0) -> None:
+        """Next iteration yields the permutation of ``epoch`` minus its first ``skip`` items."""
+        self.epoch, self.skip = epoch, skip
+
+    def _indices(self) -> list[int]:
+        order = np.random.default_rng([self.seed, self.epoch, 0x5A]).permutation(self.size)
+        return order[self.rank :: self.world].tolist()
+
+    def __iter__(self):
+        return iter(self._indices()[self.skip :])
+
+    def __len__(self) -> int:
+        return len(self._indices()) - self.skip

@@ -1,0 +1,361 @@
+"""Supervised training of a registered depth model (REFERENCE §5 recipe), resumable exactly.
+
+Run folder written here: ``config.json``, ``environment.json``, ``steps.csv`` (loss every
+``log_every`` steps), ``metrics.csv`` (one row per validation), ``tb/`` (TensorBoard) and
+``checkpoints/{last,best}.pt`` (atomic). Multi-process training works unchanged under
+``torchrun`` (DDP; gloo on CPU, NCCL on GPUs): rank 0 logs, validates and saves.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+import platform
+import signal
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from tqdm import tqdm
+
+from . import evaluate, models
+from .data import EpochSampler, FrameStore, PairDataset, load_scenes
+
+
+@dataclass
+class TrainConfig:
+    model: str
+    data: str
+    out: str
+    epochs: int = 55
+    max_steps: int | None = None  # stop after this many optimiser steps (smoke runs)
+    batch_size: int = 256
+    lr: float = 1e-2
+    momentum: float = 0.9
+    dampening: float = 0.9
+    weight_decay: float = 4e-4
+    milestones: tuple[float, ...] = (19 / 55, 30 / 55, 44 / 55, 53 / 55)  # fractions of epochs
+    gamma: float = 0.3
+    loss_weights: tuple[float, ...] = (0.32, 0.08, 0.02, 0.01, 0.005)  # finest first
+    shift: int = 3  # nominal frame shift
+    device: str = "auto"
+    threads: int = 0  # torch intra-op threads; 0 = torch's default
+    seed: int = 0
+    pretrained: str | None = None
+    resume: bool = False
+    eval_batch_size: int = 64
+    ckpt_every: int = 200  # steps between mid-epoch 'last' checkpoints (0 = epoch ends only)
+    log_every: int = 10
+    cache: bool | None = None  # decoded frames in memory: None = when they fit
+    save_predictions: bool = False
+    progress: bool = True
+    extra: dict = field(default_factory=dict)
+
+
+def resolve_device(name: str) -> torch.device:
+    if name == "auto":
+        name = "cuda" if torch.cuda.is_available() else "cpu"
+    if name.startswith("cuda") and not torch.cuda.is_available():
+        raise ValueError("--device cuda: no CUDA device is available")
+    return torch.device(name)
+
+
+def environment(device: torch.device) -> dict:
+    from importlib.metadata import version
+
+    return {
+        "python": platform.python_version(),
+        "platform": platform.platform(),
+        "torch": torch.__version__,
+        "numpy": np.__version__,
+        "stillbox-gen": version("stillbox-gen"),
+        "device": str(device),
+        "cuda_device": torch.cuda.get_device_name(device) if device.type == "cuda" else None,
+        "torch_threads": torch.get_num_threads(),
+        "cpu_count": os.cpu_count(),
+        "world_size": int(os.environ.get("WORLD_SIZE", "1")),
+    }
+
+
+def multiscale_l1(outputs: list[torch.Tensor], target: torch.Tensor, weights) -> torch.Tensor:
+    """Σ_s γ_s · mean|out_s − area_downsample(target)| (outputs finest first, (B,1,h,w))."""
+    loss = target.new_zeros(())
+    t = target.unsqueeze(1)
+    for out, w in zip(outputs, weights, strict=True):
+        loss = loss + w * (out - F.adaptive_avg_pool2d(t, out.shape[-2:])).abs().mean()
+    return loss
+
+
+def save_checkpoint(path: Path, payload: dict) -> None:
+    tmp = path.with_name(f".{path.name}.tmp")
+    torch.save(payload, tmp)
+    os.replace(tmp, path)
+
+
+def load_checkpoint(path: str | Path) -> dict:
+    try:
+        return torch.load(path, map_location="cpu", weights_only=False)
+    except FileNotFoundError:
+        raise ValueError(f"{path}: no such checkpoint") from None
+    except Exception as e:  # noqa: BLE001
+        raise ValueError(f"{path}: not a readable checkpoint ({e})") from None
+
+
+def _append_csv(path: Path, row: dict) -> None:
+    new = not path.exists()
+    with open(path, "a", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(row))
+        if new:
+            w.writeheader()
+        w.writerow(row)
+
+
+def _truncate_csv(path: Path, last_step: int) -> None:
+    if not path.exists():
+        return
+    with open(path, newline="") as f:
+        rows = list(csv.DictReader(f))
+    path.unlink()
+    for row in rows:
+        if float(row["step"]) <= last_step:
+            _append_csv(path, row)
+
+
+class Trainer:
+    def __init__(self, cfg: TrainConfig):
+        self.cfg = cfg
+        self.run = Path(cfg.out)
+        self.ckpt_dir = self.run / "checkpoints"
+        self.world = int(os.environ.get("WORLD_SIZE", "1"))
+        self.rank = 0
+        if self.world > 1:
+            backend = "nccl" if torch.cuda.is_available() else "gloo"
+            torch.distributed.init_process_group(backend)
+            self.rank = torch.distributed.get_rank()
+        if cfg.threads > 0:
+            torch.set_num_threads(cfg.threads)
+        self.device = resolve_device(cfg.device)
+        if self.device.type == "cuda" and self.world > 1:
+            self.device = torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
+        self.main = self.rank == 0
+
+    def log(self, msg: str) -> None:
+        if self.main:
+            tqdm.write(msg)
+
+    def setup(self) -> None:
+        cfg = self.cfg
+        torch.manual_seed(cfg.seed)
+        spec = models.MODELS[cfg.model]
+        self.model = spec.build().to(self.device)
+        self.nominal_displacement = None
+        if cfg.pretrained:
+            ck = load_checkpoint(cfg.pretrained)
+            self.model.load_state_dict(ck["model"])
+            self.log(f"initialised from {cfg.pretrained}")
+        self.net = self.model
+        if self.world > 1:
+            ids = [self.device.index] if self.device.type == "cuda" else None
+            self.net = torch.nn.parallel.DistributedDataParallel(self.model, device_ids=ids)
+        self.opt = torch.optim.SGD(
+            self.model.parameters(),
+            lr=cfg.lr,
+            momentum=cfg.momentum,
+            dampening=cfg.dampening,
+            weight_decay=cfg.weight_decay,
+        )
+        miles = sorted({max(1, round(m * cfg.epochs)) for m in cfg.milestones})
+        self.sched = torch.optim.lr_scheduler.MultiStepLR(self.opt, miles, cfg.gamma)
+        self.state = {"epoch": 0, "step_in_epoch": 0, "global_step": 0, "best": math.inf}
+
+        train_scenes = load_scenes(Path(cfg.data), "train")
+        val_scenes = load_scenes(Path(cfg.data), "val")
+        if not train_scenes or not val_scenes:
+            raise ValueError(
+                f"--data {cfg.data}: needs scenes in both train and val splits "
+                f"(has {len(train_scenes)} train, {len(val_scenes)} val)"
+            )
+        t0 = time.perf_counter()
+        self.train_store = FrameStore(train_scenes, cfg.cache, cfg.progress and self.main)
+        self.val_store = FrameStore(val_scenes, cfg.cache, cfg.progress and self.main)
+        self.cache_seconds = time.perf_counter() - t0
+        # depth targets are expressed for the nominal shift of the training set's displacement
+        disp = np.median([s.displacement for s in train_scenes])
+        self.nominal_displacement = float(cfg.shift * disp)
+        self.train_set = PairDataset(self.train_store, "train", cfg.shift, cfg.seed)
+        self.val_set = PairDataset(self.val_store, "eval", cfg.shift)
+        self.per_rank_batch = max(1, cfg.batch_size // self.world)
+        self.sampler = EpochSampler(len(self.train_set), cfg.seed, self.rank, self.world)
+        self.loader = torch.utils.data.DataLoader(
+            self.train_set, batch_size=self.per_rank_batch, sampler=self.sampler, drop_last=True
+        )
+        self.steps_per_epoch = len(self.train_set) // self.world // self.per_rank_batch
+        if self.steps_per_epoch == 0:
+            raise ValueError(
+                f"--batch-size {cfg.batch_size}: larger than the "
+                f"{len(self.train_set)} training samples"
+            )
+        if cfg.resume:
+            self._resume()
+        if self.main:
+            self.ckpt_dir.mkdir(parents=True, exist_ok=True)
+            (self.run / "config.json").write_text(json.dumps(asdict(cfg), indent=2) + "\n")
+            env = environment(self.device)
+            env["frame_cache_bytes"] = self.train_store.nbytes + self.val_store.nbytes
+            env["frame_cache_seconds"] = round(self.cache_seconds, 2)
+            (self.run / "environment.json").write_text(json.dumps(env, indent=2) + "\n")
+            from torch.utils.tensorboard import SummaryWriter
+
+            self.tb = SummaryWriter(str(self.run / "tb"))
+
+    def _resume(self) -> None:
+        path = self.ckpt_dir / "last.pt"
+        ck = load_checkpoint(path)
+        self.model.load_state_dict(ck["model"])
+        self.opt.load_state_dict(ck["optimizer"])
+        self.sched.load_state_dict(ck["scheduler"])
+        self.state = ck["state"]
+        if self.main:  # forget log rows written after the checkpoint
+            for name in ("steps.csv", "metrics.csv"):
+                _truncate_csv(self.run / name, self.state["global_step"])
+        self.log(f"resumed from {path} at step {self.state['global_step']}")
+
+    def checkpoint(self, name: str) -> None:
+        if not self.main:
+            return
+        save_checkpoint(
+            self.ckpt_dir / f"{name}.pt",
+            {
+                "model": self.model.state_dict(),
+                "optimizer": self.opt.state_dict(),
+                "scheduler": self.sched.state_dict(),
+                "state": dict(self.state),
+                "model_name": self.cfg.model,
+                "nominal_displacement": self.nominal_displacement,
+                "shift": self.cfg.shift,
+                "config": asdict(self.cfg),
+            },
+        )
+
+    def total_steps(self) -> int:
+        total = self.cfg.epochs * self.steps_per_epoch
+        return min(total, self.cfg.max_steps) if self.cfg.max_steps else total
+
+    def validate(self) -> dict:
+        result = evaluate.evaluate(
+            self.model,
+            self.val_set,
+            self.device,
+            self.cfg.eval_batch_size,
+            self.nominal_displacement,
+            collect=False,
+        )
+        return result.summary
+
+    def end_of_stage(self, train_loss: float, seconds: float, samples: int, wait: float) -> None:
+        """Validate, log a metrics row, keep the best checkpoint, save the last one."""
+        st = self.state
+        if self.main:
+            val = self.validate()
+            row = {
+                "epoch": st["epoch"] + st["step_in_epoch"] / self.steps_per_epoch,
+                "step": st["global_step"],
+                "lr": self.opt.param_groups[0]["lr"],
+                "train_loss": train_loss,
+                **{f"val_{k}": val[k] for k in ("mae", "mre", "mle", "depth_error")},
+                "samples_per_s": samples / seconds if seconds else 0.0,
+                "data_wait_share": wait / seconds if seconds else 0.0,
+                "seconds": seconds,
+            }
+            _append_csv(self.run / "metrics.csv", row)
+            for k, v in row.items():
+                self.tb.add_scalar(f"epoch/{k}", v, st["global_step"])
+            self.log(
+                f"step {st['global_step']}: train loss {train_loss:.3f}, val MAE "
+                f"{val['mae']:.3f} m, MRE {val['mre']:.3f}, MLE {val['mle']:.3f}"
+            )
+            if val["mae"] < st["best"]:
+                st["best"] = val["mae"]
+                self.checkpoint("best")
+        self.checkpoint("last")
+
+    def fit(self) -> None:
+        """Train to ``total_steps``; Ctrl-C stops at the next step boundary, saving 'last'."""
+        stop = []
+        previous = signal.signal(signal.SIGINT, lambda *_: stop.append(True))
+        try:
+            self._fit(stop)
+        finally:
+            signal.signal(signal.SIGINT, previous)
+        if stop:
+            raise KeyboardInterrupt
+
+    def _fit(self, stop: list) -> None:
+        cfg, st = self.cfg, self.state
+        total = self.total_steps()
+        bar = tqdm(
+            total=total,
+            initial=st["global_step"],
+            unit="step",
+            dynamic_ncols=True,
+            disable=not (cfg.progress and self.main),
+        )
+        while st["global_step"] < total and not stop:
+            self.train_set.set_epoch(st["epoch"])
+            self.sampler.set_epoch(st["epoch"], skip=st["step_in_epoch"] * self.per_rank_batch)
+            self.net.train()
+            losses, samples, wait, t_stage = [], 0, 0.0, time.perf_counter()
+            t_data = time.perf_counter()
+            for batch in self.loader:
+                wait += time.perf_counter() - t_data
+                x = batch["input"].to(self.device, non_blocking=True)
+                y = batch["target"].to(self.device, non_blocking=True)
+                loss = multiscale_l1(self.net(x), y, cfg.loss_weights)
+                self.opt.zero_grad(set_to_none=True)
+                loss.backward()
+                self.opt.step()
+                st["global_step"] += 1
+                st["step_in_epoch"] += 1
+                losses.append(loss.item())
+                samples += x.shape[0] * self.world
+                elapsed = time.perf_counter() - t_stage
+                bar.update(1)
+                bar.set_postfix(
+                    loss=f"{losses[-1]:.3f}",
+                    samples_s=f"{samples / elapsed:.0f}",
+                    epoch=st["epoch"],
+                )
+                if self.main and st["global_step"] % cfg.log_every == 0:
+                    _append_csv(
+                        self.run / "steps.csv",
+                        {
+                            "step": st["global_step"],
+                            "epoch": st["epoch"],
+                            "loss": losses[-1],
+                            "lr": self.opt.param_groups[0]["lr"],
+                        },
+                    )
+                    self.tb.add_scalar("train/loss", losses[-1], st["global_step"])
+                if cfg.ckpt_every and st["global_step"] % cfg.ckpt_every == 0:
+                    self.checkpoint("last")
+                if st["global_step"] >= total or stop:
+                    break
+                t_data = time.perf_counter()
+            seconds = time.perf_counter() - t_stage
+            if st["step_in_epoch"] >= self.steps_per_epoch:
+                st["epoch"] += 1
+                st["step_in_epoch"] = 0
+                self.sched.step()
+            if stop:
+                self.checkpoint("last")
+                break
+            train_loss = float(np.mean(losses)) if losses else float("nan")
+            self.end_of_stage(train_loss, seconds, samples, wait)
+        bar.close()
+        if self.main:
+            self.tb.close()

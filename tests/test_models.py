@@ -1,0 +1,155 @@
+"""DepthNet architecture and the model registry (CPU, a few seconds)."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+import torch.nn.functional as F
+
+from benchmark.models import (
+    MODELS,
+    DepthNet,
+    build_model,
+    count_parameters,
+    list_models,
+    macs,
+)
+
+# Parameter count of the REFERENCE §4 architecture (= the public DepthNet code with batch norm):
+# encoder convs without bias + BN, deconv blocks (transposed conv with bias, 3×3 conv, BN),
+# 5 predict_depth convs with bias, 4 bias-free 1→1 up-convs. Computed by hand and by
+# count_parameters; REFERENCE rounds it to "about 10.3 M".
+DEPTHNET_PARAMETERS = 10_290_473
+
+
+@pytest.fixture(scope="module")
+def depthnet() -> DepthNet:
+    torch.manual_seed(0)
+    return DepthNet().eval()
+
+
+@pytest.fixture(scope="module")
+def tiny() -> torch.nn.Module:
+    torch.manual_seed(0)
+    return build_model("depthnet-tiny")
+
+
+def expected_shapes(b: int, h: int, w: int) -> list[tuple[int, ...]]:
+    return [(b, 1, h // s, w // s) for s in (4, 8, 16, 32, 64)]
+
+
+def test_parameter_count(depthnet):
+    """The exact count of the REFERENCE architecture, within 0.5 % of 10.29 M."""
+    n = count_parameters(depthnet)
+    assert n == DEPTHNET_PARAMETERS
+    assert abs(n - 10.29e6) / 10.29e6 < 0.005
+
+
+@pytest.mark.parametrize("h,w", [(64, 64), (128, 192)])
+def test_output_shapes_and_positive(depthnet, h, w):
+    with torch.no_grad():
+        outs = depthnet(torch.randn(2, 6, h, w))
+    assert [tuple(o.shape) for o in outs] == expected_shapes(2, h, w)
+    assert all(bool((o > 0).all()) for o in outs)
+
+
+def test_train_mode_returns_all_scales(tiny):
+    tiny.train()
+    outs = tiny(torch.randn(2, 6, 64, 128))
+    assert [tuple(o.shape) for o in outs] == expected_shapes(2, 64, 128)
+
+
+@pytest.mark.parametrize("shape", [(1, 6, 64, 96), (1, 6, 100, 64), (1, 3, 64, 64), (6, 64, 64)])
+def test_bad_input_raises(tiny, shape):
+    with pytest.raises(ValueError, match="DepthNet"):
+        tiny(torch.randn(*shape))
+
+
+def test_tiny_variant(tiny):
+    assert count_parameters(tiny) < DEPTHNET_PARAMETERS / 20
+    tiny.eval()
+    with torch.no_grad():
+        outs = tiny(torch.randn(1, 6, 128, 192))
+    assert [tuple(o.shape) for o in outs] == expected_shapes(1, 128, 192)
+    assert all(bool((o > 0).all()) for o in outs)
+
+
+def test_clamp_option():
+    torch.manual_seed(0)
+    model = DepthNet(width=0.125, clamp=True).eval()
+    with torch.no_grad():
+        outs = model(torch.randn(1, 6, 64, 64))
+    assert all(bool(((o >= 10) & (o <= 60)).all()) for o in outs)
+
+
+def test_macs(depthnet):
+    m64 = macs(depthnet, 64, 64)
+    assert abs(m64 - 0.072e9) / 0.072e9 < 0.10
+    # every layer's spatial size doubles with the input, so MACs scale exactly ×4
+    assert macs(depthnet, 128, 128) == 4 * m64
+    assert macs(depthnet, 256, 256) == 16 * m64
+    assert not depthnet.training  # mode restored
+
+
+def test_macs_restores_training_mode(tiny):
+    tiny.train()
+    macs(tiny, 64, 64)
+    assert tiny.training
+
+
+def test_registry():
+    assert {"depthnet", "depthnet-tiny"} <= set(list_models())
+    assert list_models() == sorted(MODELS)
+    for spec in MODELS.values():
+        assert spec.output == "depth"
+        d = spec.defaults
+        assert d["lr"] == 1e-2 and d["batch_size"] == 256 and d["epochs"] == 55
+        assert [round(f * d["epochs"]) for f in d["milestones"]] == [19, 30, 44, 53]
+        assert d["loss_weights"] == (0.32, 0.08, 0.02, 0.01, 0.005)
+    with pytest.raises(ValueError, match="depthnet-tiny"):
+        build_model("nope")
+
+
+def test_deterministic_init():
+    torch.manual_seed(123)
+    a = build_model("depthnet-tiny")
+    torch.manual_seed(123)
+    b = build_model("depthnet-tiny")
+    sa, sb = a.state_dict(), b.state_dict()
+    assert sa.keys() == sb.keys()
+    assert all(torch.equal(sa[k], sb[k]) for k in sa)
+
+
+def test_init_statistics(depthnet):
+    """Weights ~ N(0, 2 / (k·k·C_out)), biases 0, BN weight 1 / bias 0 (the public code)."""
+    w = depthnet.conv6_1[0].weight  # 512·512·9 samples
+    assert abs(w.std().item() / (2 / (9 * 512)) ** 0.5 - 1) < 0.01
+    t = depthnet.deconv5[0].weight  # transposed conv: fan-out uses out_channels = 256
+    assert abs(t.std().item() / (2 / (16 * 256)) ** 0.5 - 1) < 0.01
+    assert torch.count_nonzero(depthnet.deconv5[0].bias) == 0
+    assert torch.count_nonzero(depthnet.predict_depth2.bias) == 0
+    assert torch.all(depthnet.conv1[1].weight == 1) and torch.all(depthnet.conv1[1].bias == 0)
+
+
+def test_sgd_step_decreases_loss():
+    torch.manual_seed(0)
+    model = build_model("depthnet-tiny").train()
+    spec = MODELS["depthnet-tiny"]
+    x = torch.randn(4, 6, 64, 64)
+    target = torch.rand(4, 1, 64, 64) * 2 + 2  # metres
+
+    def loss() -> torch.Tensor:
+        outs = model(x)
+        return sum(
+            w * F.l1_loss(o, F.adaptive_avg_pool2d(target, o.shape[-2:]))
+            for w, o in zip(spec.defaults["loss_weights"], outs, strict=True)
+        )
+
+    opt = torch.optim.SGD(model.parameters(), lr=1e-2, momentum=0.9)
+    before = loss()
+    opt.zero_grad()
+    before.backward()
+    opt.step()
+    with torch.no_grad():
+        after = loss()
+    assert after.item() < before.item()
