@@ -22,10 +22,15 @@ lint: $(STAMP)
 test: $(STAMP) lint
 	$(BIN)/python -m pytest -q --durations=5
 
+# The main job on a small default: generate 40 scenes at 64 px, check them, train DepthNet
+# briefly on CPU (or GPU), score it and write the report (a few minutes in all on 2 cores).
 demo: $(STAMP)
-	$(BIN)/stillbox-gen --res 64 --scenes 20 --out data/demo-64
+	$(BIN)/stillbox-gen --res 64 --scenes 40 --out data/demo-64
 	$(BIN)/stillbox-gen validate data/demo-64
 	$(BIN)/stillbox-gen preview data/demo-64 --out data/demo-64-preview.png
+	rm -rf runs/demo-depthnet
+	$(BIN)/stillbox-bench run depthnet --data data/demo-64 --epochs 5 --batch-size 32 --out runs/demo-depthnet
+	cat runs/demo-depthnet/summary.md
 
 # Whole-process generation speed (start-up and writing included) at 64/128/256 px, 1 vs 2 workers.
 BENCH_DIR ?= /tmp/stillbox-bench-gen
@@ -40,4 +45,4 @@ bench-gen: $(STAMP)
 	  done; done; rm -rf $(BENCH_DIR)
 
 clean:
-	rm -rf $(VENV) data/demo-64 data/demo-64-preview.png .pytest_cache .ruff_cache
+	rm -rf $(VENV) data/demo-64 data/demo-64-preview.png runs/demo-depthnet .pytest_cache .ruff_cache

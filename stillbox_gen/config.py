@@ -88,9 +88,9 @@ class BoxConfig:
 
 @dataclass(frozen=True)
 class LightConfig:
-    sun_strength_range: tuple[float, float] = (2.0, 6.0)  # W/m^2
+    sun_strength_range: tuple[float, float] = (2.0, 7.0)  # W/m^2
     sun_elevation_range_deg: tuple[float, float] = (15.0, 90.0)
-    ambient_strength_range: tuple[float, float] = (0.5, 1.5)  # world background strength
+    ambient_strength_range: tuple[float, float] = (0.8, 2.0)  # world background strength
     colour_jitter: float = 0.15  # max deviation of light colour channels from white
 
 

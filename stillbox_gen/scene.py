@@ -136,11 +136,12 @@ def sample_material(
     cfg: MaterialsConfig,
     scale_range: tuple[float, float],
     allow_plain: bool = True,
+    allow_mirror: bool = True,
 ) -> MaterialSpec:
     """One surface. ``scale_range`` (features per metre) depends on the typical viewing distance."""
     use_image = bool(cfg.texture_files) and rng.random() < cfg.texture_ratio
     plain = not use_image and rng.random() < cfg.plain_ratio and allow_plain
-    mirror = rng.random() < cfg.mirror_ratio
+    mirror = rng.random() < cfg.mirror_ratio and allow_mirror
     glossy = rng.random() < cfg.glossy_ratio
     roughness = 0.02 if mirror else float(rng.uniform(0.05, 0.3) if glossy else rng.uniform(0.5, 1))
     common = dict(
@@ -292,7 +293,9 @@ def sample_box(rng: np.random.Generator, cfg: DatasetConfig) -> BoxSpec:
     return BoxSpec(
         center=_rounded(rng.uniform(-b.offset_max, b.offset_max, size=3)),
         half_extents=_rounded(rng.uniform(*b.half_extent_range, size=3)),
-        material=sample_material(rng, cfg.materials, (0.03, 0.3), allow_plain=False),
+        material=sample_material(
+            rng, cfg.materials, (0.03, 0.3), allow_plain=False, allow_mirror=False
+        ),
     )
 
 
