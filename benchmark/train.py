@@ -359,3 +359,5 @@ class Trainer:
         bar.close()
         if self.main:
             self.tb.close()
+        if self.world > 1:
+            torch.distributed.destroy_process_group()
