@@ -78,6 +78,22 @@ def score_checkpoint(
     return write_run_report(out, name, result, info)
 
 
+DATA_OPTION = click.option(
+    "--data",
+    type=click.Path(path_type=Path),
+    required=True,
+    help="Dataset folder made by stillbox-gen.",
+)
+DEVICE_OPTION = click.option(
+    "--device", default="auto", show_default=True, help="auto | cpu | cuda | cuda:N."
+)
+PREDICTIONS_OPTION = click.option(
+    "--save-predictions",
+    is_flag=True,
+    help="Store predicted depth maps (float32 .npy, full resolution).",
+)
+
+
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
 def cli() -> None:
     """Train and score depth-from-motion baselines on stillbox-gen datasets.
@@ -101,12 +117,7 @@ def list_cmd() -> None:
 
 @cli.command()
 @click.argument("model")
-@click.option(
-    "--data",
-    type=click.Path(path_type=Path),
-    required=True,
-    help="Dataset folder made by stillbox-gen.",
-)
+@DATA_OPTION
 @click.option(
     "--out",
     type=click.Path(path_type=Path),
@@ -120,7 +131,7 @@ def list_cmd() -> None:
 @click.option("--max-steps", type=int, help="Stop after this many optimiser steps (smoke runs).")
 @click.option("--batch-size", type=int, help="Samples per optimiser step.  [default: model's, 256]")
 @click.option("--lr", type=float, help="Initial SGD learning rate.  [default: model's, 0.01]")
-@click.option("--device", default="auto", show_default=True, help="auto | cpu | cuda | cuda:N.")
+@DEVICE_OPTION
 @click.option(
     "--threads",
     type=int,
@@ -151,11 +162,7 @@ def list_cmd() -> None:
 @click.option(
     "--log-every", type=int, default=10, show_default=True, help="Steps between steps.csv rows."
 )
-@click.option(
-    "--save-predictions",
-    is_flag=True,
-    help="Store predicted depth maps (float32 .npy, full resolution).",
-)
+@PREDICTIONS_OPTION
 @click.option("--quiet", is_flag=True, help="No progress bars.")
 def run(model: str, data: Path, out: Path | None, **o) -> None:
     """Train MODEL on the train split, then score the best checkpoint and write a report."""
@@ -237,12 +244,7 @@ def run(model: str, data: Path, out: Path | None, **o) -> None:
     required=True,
     help="Checkpoint (.pt) written by 'run'.",
 )
-@click.option(
-    "--data",
-    type=click.Path(path_type=Path),
-    required=True,
-    help="Dataset folder made by stillbox-gen.",
-)
+@DATA_OPTION
 @click.option(
     "--split",
     type=click.Choice(["train", "val", "test"]),
@@ -262,12 +264,8 @@ def run(model: str, data: Path, out: Path | None, **o) -> None:
     show_default=True,
     help="Pairs per forward pass (does not change results).",
 )
-@click.option("--device", default="auto", show_default=True, help="auto | cpu | cuda | cuda:N.")
-@click.option(
-    "--save-predictions",
-    is_flag=True,
-    help="Store predicted depth maps (float32 .npy, full resolution).",
-)
+@DEVICE_OPTION
+@PREDICTIONS_OPTION
 def eval_cmd(
     ckpt: Path,
     data: Path,
