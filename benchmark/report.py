@@ -84,8 +84,7 @@ def write_run_report(run: Path, model: str, result: EvalResult, info: dict) -> d
         )
         plots.error_vs_estimate(px["pred"], px["gt"], plot_dir / "error_vs_estimate.png")
     if result.samples:
-        samples = [{**s, "pred": s["pred"], "gt": s["gt"]} for s in result.samples]
-        plots.sample_grid(samples, plot_dir / "samples.png")
+        plots.sample_grid(result.samples, plot_dir / "samples.png")
     if (run / "metrics.csv").exists():
         learning_curve(run / "metrics.csv", plot_dir / "learning_curve.png")
     summary = {

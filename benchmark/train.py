@@ -15,7 +15,7 @@ import os
 import platform
 import signal
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -54,7 +54,6 @@ class TrainConfig:
     cache: bool | None = None  # decoded frames in memory: None = when they fit
     save_predictions: bool = False
     progress: bool = True
-    extra: dict = field(default_factory=dict)
 
 
 def resolve_device(name: str) -> torch.device:

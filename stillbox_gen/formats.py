@@ -26,7 +26,7 @@ NO_SURFACE_DEPTH = 1e10  # what Cycles writes where a ray hits nothing within ma
 DEPTH_CONVENTION = (
     "planar depth z along the camera optical axis (OpenCV +z), metres, float32, one value per "
     "pixel sampled at the pixel centre, not clipped; pixels whose ray meets no surface within "
-    "args.max_distance hold 1e10"
+    f"args.max_distance hold {NO_SURFACE_DEPTH:g}"
 )
 
 
