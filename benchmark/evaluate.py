@@ -109,7 +109,7 @@ def evaluate(
                 )
     model.train(was_training)
     stacked = {k: torch.cat(v).numpy() for k, v in per_image.items()}
-    summary = metrics.aggregate({k: v for k, v in stacked.items() if k != "valid_pixels"})
+    summary = metrics.aggregate(stacked)  # valid_pixels decides which images count
     return EvalResult(
         summary=summary,
         per_sample=rows,
