@@ -5,7 +5,6 @@ User mistakes print one line ``stillbox-bench: error: ...`` and exit with code 2
 
 from __future__ import annotations
 
-import dataclasses
 import sys
 import time
 from pathlib import Path
@@ -27,55 +26,22 @@ def _dataset_dir(data: Path) -> Path:
     return data
 
 
-def score_checkpoint(
-    ckpt: Path,
-    data: Path,
-    split: str,
-    out: Path,
-    device: str,
-    batch_size: int,
-    save_predictions: bool,
-    progress: bool = True,
-) -> dict:
-    """Evaluate a checkpoint on a split and write summary.json/.md, per_sample.csv, plots/."""
-    from .data import FrameStore, PairDataset, load_scenes
-    from .evaluate import evaluate
-    from .report import write_run_report
-    from .train import load_checkpoint, resolve_device
+def score_checkpoint(*args, **kwargs) -> dict:
+    """benchmark.runner.score_checkpoint (kept here for callers of the old location)."""
+    from .runner import score_checkpoint as score
 
-    ck = load_checkpoint(ckpt)
-    name = ck["model_name"]
-    model = models.build_model(name)
-    model.load_state_dict(ck["model"])
-    dev = resolve_device(device)
-    model.to(dev)
-    scenes = load_scenes(data, split)
-    if not scenes and split == "test":
-        split, scenes = "val", load_scenes(data, "val")
-    if not scenes:
-        raise UserError(f"--data: '{data}' has no scenes in split '{split}'")
-    store = FrameStore(scenes, progress=progress)
-    dataset = PairDataset(store, "eval", ck.get("shift", 3))
-    t0 = time.perf_counter()
-    result = evaluate(
-        model,
-        dataset,
-        dev,
-        batch_size,
-        ck["nominal_displacement"],
-        predictions_dir=out / "predictions" if save_predictions else None,
-    )
-    info = {
-        "dataset": str(data),
-        "split": split,
-        "scenes": len(scenes),
-        "shift": ck.get("shift", 3),
-        "checkpoint": str(ckpt),
-        "nominal_displacement": ck["nominal_displacement"],
-        "training_state": ck.get("state"),
-        "eval_seconds": round(time.perf_counter() - t0, 2),
-    }
-    return write_run_report(out, name, result, info)
+    return score(*args, **kwargs)
+
+
+def _models_option(value: str) -> list[str]:
+    names = [n.strip() for n in value.split(",") if n.strip()]
+    unknown = [n for n in names if n not in models.MODELS]
+    if not names or unknown:
+        raise UserError(
+            f"--models: unknown {', '.join(map(repr, unknown)) or 'empty list'} "
+            f"(registered: {', '.join(models.list_models())})"
+        )
+    return names
 
 
 DATA_OPTION = click.option(
@@ -100,8 +66,11 @@ def cli() -> None:
 
     \b
     stillbox-bench run depthnet --data data/stillbox-64      train -> evaluate -> report
+    stillbox-bench run oracle-flow --data data/stillbox-64   score a method without a network
     stillbox-bench eval --ckpt runs/R/checkpoints/best.pt --data data/stillbox-64
-    stillbox-bench report runs/*                             one comparison table
+    stillbox-bench compare --data D --models depthnet,flownets-flow,oracle-flow,constant
+    stillbox-bench report runs/*                             one comparison table + figure
+    stillbox-bench speed                                     size and speed table
     stillbox-bench list                                      registered models
     """
 
@@ -111,8 +80,11 @@ def list_cmd() -> None:
     """Registered models with their parameter counts."""
     for name in models.list_models():
         spec = models.MODELS[name]
-        n = models.count_parameters(spec.build()) / 1e6
-        click.echo(f"{name:16s} {n:7.2f} M parameters  {spec.description}")
+        if spec.trainable:
+            n = f"{models.count_parameters(spec.build()) / 1e6:7.2f} M parameters"
+        else:
+            n = f"{'no network':>20s}"
+        click.echo(f"{name:20s} {n}  {spec.description}")
 
 
 @cli.command()
@@ -165,12 +137,15 @@ def list_cmd() -> None:
 @PREDICTIONS_OPTION
 @click.option("--quiet", is_flag=True, help="No progress bars.")
 def run(model: str, data: Path, out: Path | None, **o) -> None:
-    """Train MODEL on the train split, then score the best checkpoint and write a report."""
-    from .train import TrainConfig, Trainer
+    """Train MODEL on the train split, then score the best checkpoint and write a report.
 
+    Methods without a network (oracle-flow, constant) are scored directly; training options are
+    ignored for them.
+    """
     if model not in models.MODELS:
         raise UserError(f"MODEL: unknown '{model}' (registered: {', '.join(models.list_models())})")
     data = _dataset_dir(data)
+    trainable = models.MODELS[model].trainable
     if o["resume"] and (out is None or not (out / "checkpoints" / "last.pt").is_file()):
         raise UserError(
             "--resume: give the --out folder of an earlier run (with checkpoints/last.pt)"
@@ -186,55 +161,40 @@ def run(model: str, data: Path, out: Path | None, **o) -> None:
             raise UserError(f"--{flag.replace('_', '-')}: must be at least 1")
     if o["pretrained"] is not None and not o["pretrained"].is_file():
         raise UserError(f"--pretrained: no such file '{o['pretrained']}'")
-    defaults = {
-        k: v
-        for k, v in models.MODELS[model].defaults.items()
-        if k in {f.name for f in dataclasses.fields(TrainConfig)}
-    }
-    cfg = TrainConfig(model=model, data=str(data), out=str(out), **defaults)
-    overrides = {k: o[k] for k in ("epochs", "max_steps", "batch_size", "lr") if o[k] is not None}
-    cfg = dataclasses.replace(
-        cfg,
-        **overrides,
-        device=o["device"],
-        threads=o["threads"],
-        seed=o["seed"],
-        pretrained=str(o["pretrained"]) if o["pretrained"] else None,
-        resume=o["resume"],
-        ckpt_every=o["ckpt_every"],
-        log_every=o["log_every"],
-        save_predictions=o["save_predictions"],
-        progress=not o["quiet"],
-    )
-    out.mkdir(parents=True, exist_ok=True)
-    trainer = Trainer(cfg)
-    try:
-        trainer.setup()
-    except ValueError as e:
-        raise UserError(str(e)) from None
-    t0 = time.perf_counter()
-    trainer.fit()
-    train_seconds = time.perf_counter() - t0
-    if not trainer.main:
+    if not trainable and (o["pretrained"] or o["resume"]):
+        raise UserError(f"MODEL: '{model}' has no network (no --pretrained or --resume)")
+    summary = _run_one(model, data, out, o)
+    if summary is None:
         return
-    ckpt = out / "checkpoints" / "best.pt"
-    summary = score_checkpoint(
-        ckpt,
-        data,
-        "test",
-        out,
-        o["device"],
-        cfg.eval_batch_size,
-        cfg.save_predictions,
-        progress=not o["quiet"],
-    )
-    summary["training_seconds"] = round(train_seconds, 1)
     m = summary["metrics"]
+    epe = f", EPE {m['epe']:.3f} px" if "epe" in m else ""
     click.echo(
         f"{model}: MAE {m['mae']:.3f} m, MRE {m['mre']:.3f}, MLE {m['mle']:.3f}, "
-        f"depth error {m['depth_error']:.3f} m on {summary['split']} "
+        f"depth error {m['depth_error']:.3f} m{epe} on {summary['split']} "
         f"({m['images']} pairs); report in {out / 'summary.md'}"
     )
+
+
+def _run_one(model: str, data: Path, out: Path, o: dict) -> dict | None:
+    """runner.run_method with the command-line options; ValueError -> UserError."""
+    from .runner import run_method
+
+    overrides = {k: o.get(k) for k in ("epochs", "max_steps", "batch_size", "lr")}
+    overrides.update(
+        device=o["device"],
+        threads=o.get("threads", 0),
+        seed=o.get("seed", 0),
+        pretrained=str(o["pretrained"]) if o.get("pretrained") else None,
+        resume=o.get("resume", False),
+        ckpt_every=o.get("ckpt_every", 200),
+        log_every=o.get("log_every", 10),
+        save_predictions=o.get("save_predictions", False),
+        progress=not o["quiet"],
+    )
+    try:
+        return run_method(model, data, out, **overrides)
+    except ValueError as e:
+        raise UserError(str(e)) from None
 
 
 @cli.command("eval")
@@ -292,6 +252,21 @@ def eval_cmd(
     )
 
 
+def _write_comparison(runs: list[Path], out: Path) -> str:
+    """Write OUT.md, OUT.csv and OUT-error_vs_foe_distance.png; return the markdown table."""
+    from .report import compare_figure, compare_runs
+
+    md, csv_text = compare_runs(runs)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    figure = out.with_name(f"{out.name}-error_vs_foe_distance.png")
+    text = md
+    if compare_figure(runs, figure):
+        text += f"\n\nError vs distance to the focus of expansion, every method: `{figure.name}`"
+    out.with_name(f"{out.name}.md").write_text(text + "\n")
+    out.with_name(f"{out.name}.csv").write_text(csv_text)
+    return md
+
+
 @cli.command()
 @click.argument("runs", nargs=-1, required=True, type=click.Path(path_type=Path))
 @click.option(
@@ -299,19 +274,153 @@ def eval_cmd(
     type=click.Path(path_type=Path),
     default=Path("report"),
     show_default=True,
-    help="Writes OUT.md and OUT.csv.",
+    help="Writes OUT.md, OUT.csv and OUT-error_vs_foe_distance.png.",
 )
 def report(runs: tuple[Path, ...], out: Path) -> None:
-    """One comparison table (markdown + CSV) of several runs' summary.json."""
-    from .report import compare_runs
-
+    """One comparison table (markdown + CSV) of several runs' summary.json, and one figure of
+    error vs distance to the focus of expansion with every run on it."""
     missing = [str(r) for r in runs if not (r / "summary.json").is_file()]
     if missing:
         raise UserError(f"RUNS: no summary.json in {', '.join(missing)}")
-    md, csv_text = compare_runs(list(runs))
-    out.with_suffix(".md").write_text(md + "\n")
-    out.with_suffix(".csv").write_text(csv_text)
-    click.echo(md)
+    click.echo(_write_comparison(list(runs), out))
+
+
+@cli.command()
+@DATA_OPTION
+@click.option(
+    "--models",
+    "names",
+    default="depthnet,flownets-depth,flownets-flow,oracle-flow,constant",
+    show_default=True,
+    help="Comma-separated registered methods.",
+)
+@click.option(
+    "--out",
+    type=click.Path(path_type=Path),
+    help="Folder: one run folder per method + comparison.{md,csv} and the FOE figure.  "
+    "[default: runs/compare-<dataset>-<time>]",
+)
+@click.option("--epochs", type=int, help="Epochs of every network.  [default: model's]")
+@click.option("--max-steps", type=int, help="Stop every training after this many steps.")
+@click.option("--batch-size", type=int, help="Samples per optimiser step.  [default: model's]")
+@click.option("--lr", type=float, help="Initial learning rate.  [default: model's]")
+@DEVICE_OPTION
+@click.option("--threads", type=int, default=0, show_default=True, help="Torch CPU threads.")
+@click.option("--seed", type=int, default=0, show_default=True, help="Seed of every training.")
+@click.option("--quiet", is_flag=True, help="No progress bars.")
+def compare(data: Path, names: str, out: Path | None, **o) -> None:
+    """Run every method of --models on --data (reusing finished runs in --out), then write one
+    comparison table and one error-vs-FOE-distance figure with every method."""
+    chosen = _models_option(names)
+    data = _dataset_dir(data)
+    for flag in ("epochs", "max_steps", "batch_size"):
+        if o[flag] is not None and o[flag] < 1:
+            raise UserError(f"--{flag.replace('_', '-')}: must be at least 1")
+    if out is None:
+        out = Path("runs") / f"compare-{data.resolve().name}-{time.strftime('%Y%m%d-%H%M%S')}"
+    if out.exists() and not out.is_dir():
+        raise UserError(f"--out: '{out}' is a file")
+    runs = []
+    for name in chosen:
+        run_dir = out / name
+        if (run_dir / "summary.json").is_file():
+            click.echo(f"{name}: reusing {run_dir}")
+        else:
+            if (run_dir / "checkpoints" / "last.pt").exists():
+                raise UserError(
+                    f"--out: '{run_dir}' holds an unfinished run; finish it with "
+                    f"'stillbox-bench run {name} --resume --out {run_dir}' or remove it"
+                )
+            click.echo(f"{name}: running into {run_dir}")
+            _run_one(name, data, run_dir, o)
+        runs.append(run_dir)
+    click.echo(_write_comparison(runs, out / "comparison"))
+    click.echo(f"comparison in {out / 'comparison.md'}")
+
+
+def _int_list(option: str, value: str) -> tuple[int, ...]:
+    try:
+        values = tuple(int(v) for v in value.split(",") if v.strip())
+    except ValueError:
+        raise UserError(f"{option}: expected comma-separated integers, got '{value}'") from None
+    if not values or any(v < 64 or v % 64 for v in values):
+        raise UserError(f"{option}: sizes must be positive multiples of 64, got '{value}'")
+    return values
+
+
+@cli.command()
+@click.option(
+    "--models",
+    "names",
+    default="depthnet,flownets-depth,flownets-flow",
+    show_default=True,
+    help="Comma-separated registered networks.",
+)
+@click.option(
+    "--resolutions",
+    default="64,128,256,512",
+    show_default=True,
+    help="Square input sizes (px) for the GMAC columns.",
+)
+@click.option(
+    "--time-res",
+    type=int,
+    default=64,
+    show_default=True,
+    help="Square input size (px) of the latency/throughput measurements.",
+)
+@click.option("--warmup", type=int, default=3, show_default=True, help="Untimed passes first.")
+@click.option("--repeats", type=int, default=20, show_default=True, help="Timed passes (median).")
+@DEVICE_OPTION
+@click.option("--threads", type=int, default=0, show_default=True, help="Torch CPU threads.")
+@click.option(
+    "--out",
+    type=click.Path(path_type=Path),
+    default=Path("runs") / "speed",
+    show_default=True,
+    help="Folder of the CSV (named after device, threads and torch version).",
+)
+def speed(
+    names: str,
+    resolutions: str,
+    time_res: int,
+    warmup: int,
+    repeats: int,
+    device: str,
+    threads: int,
+    out: Path,
+) -> None:
+    """Parameters, GMACs, batch-1 latency and batch-8 throughput of each network (Table 3.6)."""
+    import torch
+
+    from . import speed as sp
+    from .train import resolve_device
+
+    chosen = _models_option(names)
+    no_net = [n for n in chosen if not models.MODELS[n].trainable]
+    if no_net:
+        raise UserError(f"--models: {', '.join(no_net)} ha(s) no network to time")
+    sizes = _int_list("--resolutions", resolutions)
+    _int_list("--time-res", str(time_res))
+    if warmup < 0 or repeats < 1:
+        raise UserError("--warmup must be >= 0 and --repeats >= 1")
+    if out.exists() and not out.is_dir():
+        raise UserError(f"--out: '{out}' is a file")
+    if threads > 0:
+        torch.set_num_threads(threads)
+    try:
+        dev = resolve_device(device)
+    except ValueError as e:
+        raise UserError(str(e)) from None
+    rows = sp.measure(chosen, dev, sizes, time_res, warmup=warmup, repeats=repeats)
+    path = out / sp.csv_name(dev)
+    sp.write_csv(rows, path)
+    click.echo(
+        f"device {dev}, {torch.get_num_threads()} threads, torch {torch.__version__}; "
+        f"timing at {time_res} px, median of {repeats} after {warmup} warm-up passes"
+    )
+    click.echo(sp.markdown(rows))
+    click.echo(f"written to {path}")
 
 
 def main(argv: list[str] | None = None) -> None:

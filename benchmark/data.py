@@ -5,6 +5,9 @@ round(2·nominal_shift·U) in {0..6}, i2 = min(last, i1 + shift), swapped with p
 target is depth(i2) · nominal_shift / |i2 − i1| (100 m when i1 == i2), clipped to [0, 100] m;
 random horizontal and vertical flips. Evaluation pairs are fixed forward pairs (i, i + shift) with
 target depth(i + shift). Inputs are (x/255 − 0.5)/0.2 per channel, frames stacked to 6 channels.
+Flow networks train on the same pairs with an optical-flow target (``target="flow"``): the exact
+flow of the static scene at the second frame's pixels towards the first frame, from the second
+frame's depth and the known translation (benchmark.flow).
 
 Every random draw comes from ``numpy.random.default_rng([seed, epoch, index])``: the same seed
 gives the same batches whatever the worker count, and a resumed run continues the same sequence.
@@ -26,6 +29,8 @@ os.environ.setdefault("OPENCV_IO_ENABLE_OPENEXR", "1")
 import cv2  # noqa: E402
 
 from stillbox_gen.formats import read_depth_exr  # noqa: E402
+
+from .flow import flow_from_depth  # noqa: E402
 
 MAX_DEPTH = 100.0  # metres: training targets and scores are clipped here (REFERENCE §3, §6)
 STILL_TARGET = 100.0  # target for identical frames: "no motion => infinitely far", saturated
@@ -164,12 +169,23 @@ class PairDataset(torch.utils.data.Dataset):
     Items are dicts: ``input`` (6, H, W) float32, ``target`` (H, W) float32 metres (depth of the
     second frame, rescaled and clipped in train mode, raw in eval mode), ``translation`` (3,)
     float32 metres (camera motion from first to second frame, camera axes, after flips), ``K``
-    (3, 3), ``scene``, ``frames`` (i1, i2), ``flips`` (horizontal, vertical).
+    (3, 3) (of the flipped images: a flip mirrors the principal point), ``scene``, ``frames``
+    (i1, i2), ``flips`` (horizontal, vertical).
+
+    ``target="flow"`` (train mode only): ``target`` is instead the (2, H, W) float32 flow in
+    pixels at the second frame's pixels towards the first frame (position in frame i1 minus
+    position in frame i2), computed from the raw depth of frame i2 and the translation i2 → i1
+    (after flips); NaN where a point is not in front of the first camera. Zero for i1 == i2.
     """
 
-    def __init__(self, store: FrameStore, mode: str, shift: int = 3, seed: int = 0):
+    def __init__(
+        self, store: FrameStore, mode: str, shift: int = 3, seed: int = 0, target: str = "depth"
+    ):
         if mode not in ("train", "eval"):
             raise ValueError(mode)
+        if target not in ("depth", "flow") or (target == "flow" and mode != "train"):
+            raise ValueError(f"target {target!r} with mode {mode!r}")
+        self.target = target
         self.store, self.mode, self.shift, self.seed = store, mode, shift, seed
         self.epoch = 0
         self.items: list[tuple[int, int]] = []
@@ -199,26 +215,37 @@ class PairDataset(torch.utils.data.Dataset):
             i2 = min(last, i1 + round(2 * self.shift * rng.uniform()))
             if rng.uniform() > 0.5:
                 i1, i2 = i2, i1
-            if i1 == i2:
+            if self.target == "flow":
+                target = self.store.depth(k, i2)  # raw: the flow uses the true translation
+            elif i1 == i2:
                 target = np.full_like(self.store.depth(k, i2), STILL_TARGET)
             else:
                 target = self.store.depth(k, i2) * (self.shift / abs(i2 - i1))
-            target = np.clip(target, 0.0, MAX_DEPTH)
+            if self.target == "depth":
+                target = np.clip(target, 0.0, MAX_DEPTH)
             flip_h, flip_v = rng.uniform() < 0.5, rng.uniform() < 0.5
         img1, img2 = self.store.rgb(k, i1), self.store.rgb(k, i2)
         translation = scene.translation(i1, i2)
+        K = scene.K.copy()
+        h, w = target.shape
         if flip_h:
             img1, img2, target = img1[:, ::-1], img2[:, ::-1], target[:, ::-1]
             translation = translation * np.array([-1.0, 1.0, 1.0])
+            K[0, 2] = w - 1 - K[0, 2]
         if flip_v:
             img1, img2, target = img1[::-1], img2[::-1], target[::-1]
             translation = translation * np.array([1.0, -1.0, 1.0])
+            K[1, 2] = h - 1 - K[1, 2]
+        if self.target == "flow":
+            depth = torch.from_numpy(np.ascontiguousarray(target, dtype=np.float64))
+            target = flow_from_depth(depth, torch.from_numpy(K), torch.from_numpy(-translation))
+            target = target.numpy()
         x = np.concatenate([normalise(img1), normalise(img2)], axis=0)
         return {
             "input": torch.from_numpy(np.ascontiguousarray(x)),
             "target": torch.from_numpy(np.ascontiguousarray(target, dtype=np.float32)),
             "translation": torch.from_numpy(translation.astype(np.float32)),
-            "K": torch.from_numpy(scene.K.astype(np.float32)),
+            "K": torch.from_numpy(K.astype(np.float32)),
             "scene": scene.index,
             "frames": torch.tensor([i1, i2]),
             "flips": torch.tensor([flip_h, flip_v]),

@@ -1,10 +1,16 @@
-"""Scoring a depth model on fixed forward pairs (i, i + shift) of a split.
+"""Scoring a method on fixed forward pairs (i, i + shift) of a split.
 
-Depth is scaled by the known displacement, never by the ground truth: the network answers for
+Depth is scaled by the known displacement, never by the ground truth: a depth network answers for
 its training set's nominal displacement (shift × metres per frame), so its output is multiplied
-by |translation of the pair| / nominal displacement. Metrics: benchmark.metrics (per image at
-full resolution, prediction upsampled bilinearly; then equal-weight mean over images), plus the
-original DepthNet "depth error" at 1/4 resolution.
+by |translation of the pair| / nominal displacement. A flow network's 1/4-resolution flow is
+upsampled bilinearly to full resolution (its values are already full-resolution pixels), turned
+into depth with the pair's known translation (benchmark.flow.depth_from_flow, clamped to
+[0.1, 100] m, every pixel kept, the FOE's neighbourhood included) and its end-point error (EPE)
+against the exact flow is reported too. ``oracle-flow`` feeds the exact flow to the same geometry;
+``constant`` predicts one depth everywhere. Metrics: benchmark.metrics (per image at full
+resolution; then equal-weight mean over images), plus the original DepthNet "depth error" at 1/4
+resolution (for methods without a 1/4-resolution depth output: their full-resolution depth,
+area-downsampled by 4).
 """
 
 from __future__ import annotations
@@ -14,8 +20,71 @@ from pathlib import Path
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 
-from . import geometry, metrics
+from . import flow, geometry, metrics
+
+
+@dataclass
+class Method:
+    """How a registered method turns a batch of pairs into depth.
+
+    ``output``: "depth", "flow", "oracle-flow" or "constant" (see models.ModelSpec);
+    ``model``: the network (depth and flow methods); ``nominal_displacement``: metres the depth
+    network answers for (depth methods); ``constant``: metres (constant method);
+    ``flow_noise``: standard deviation (pixels) of Gaussian noise added to the exact flow of
+    ``oracle-flow`` (seeded by scene and frames: the conditioning of the geometry near the FOE).
+    """
+
+    output: str
+    model: torch.nn.Module | None = None
+    nominal_displacement: float | None = None
+    constant: float | None = None
+    flow_noise: float = 0.0  # oracle-flow: Gaussian noise (px, per component) added to the flow
+
+
+def predict(method: Method, batch: dict, device: torch.device) -> dict[str, torch.Tensor]:
+    """Depth (B, H, W) at full resolution, its 1/4-resolution version ``depth_q`` (B, 1, h, w)
+    and, for flow-based methods, the flow ``flow`` (B, 2, H, W) and the exact ``gt_flow``."""
+    gt = batch["target"].to(device)
+    b, h, w = gt.shape
+    out: dict[str, torch.Tensor] = {}
+    if method.output == "depth":
+        scale = batch["translation"].norm(dim=1).to(device) / method.nominal_displacement
+        out["depth_q"] = method.model(batch["input"].to(device))[0] * scale.view(-1, 1, 1, 1)
+        out["depth"] = metrics.upsample_to(out["depth_q"], h, w)
+        return out
+    if method.output == "constant":
+        out["depth"] = torch.full_like(gt, method.constant)
+    elif method.output in ("flow", "oracle-flow"):
+        K = batch["K"].to(device, torch.float64)
+        back = -batch["translation"].to(device, torch.float64)  # second frame -> first frame
+        out["gt_flow"] = flow.flow_from_depth(gt.to(torch.float64), K, back)
+        if method.output == "flow":
+            f_q = method.model(batch["input"].to(device))[0]
+            f = F.interpolate(f_q, size=(h, w), mode="bilinear", align_corners=False)
+            out["flow"] = f
+        else:
+            out["flow"] = out["gt_flow"]
+            if method.flow_noise > 0:
+                noise = torch.stack(
+                    [
+                        torch.randn(
+                            (2, h, w),
+                            generator=torch.Generator().manual_seed(
+                                int(scene) * 1000 + int(frames[0])
+                            ),
+                            dtype=torch.float64,
+                        )
+                        for scene, frames in zip(batch["scene"], batch["frames"], strict=True)
+                    ]
+                )
+                out["flow"] = out["gt_flow"] + method.flow_noise * noise.to(device)
+        out["depth"] = flow.depth_from_flow(out["flow"].to(torch.float64), K, back).to(gt.dtype)
+    else:
+        raise ValueError(f"unknown method output {method.output!r}")
+    out["depth_q"] = F.adaptive_avg_pool2d(out["depth"][:, None], (h // 4, w // 4))
+    return out
 
 
 @dataclass
@@ -34,19 +103,24 @@ def _to_uint8(x: torch.Tensor) -> np.ndarray:
 
 @torch.no_grad()
 def evaluate(
-    model: torch.nn.Module,
+    method: Method | torch.nn.Module,
     dataset,
     device: torch.device,
     batch_size: int,
-    nominal_displacement: float,
+    nominal_displacement: float | None = None,
     collect: bool = True,
     predictions_dir: Path | None = None,
     plot_pixels: int = 400_000,
     grid_samples: int = 6,
 ) -> EvalResult:
-    """Score ``model`` on an eval-mode PairDataset; returns aggregated and per-pair metrics."""
-    was_training = model.training
-    model.eval()
+    """Score a method (or a depth network with its ``nominal_displacement``) on an eval-mode
+    PairDataset; returns aggregated and per-pair metrics (plus ``epe`` for flow methods)."""
+    if isinstance(method, torch.nn.Module):
+        method = Method("depth", method, nominal_displacement)
+    model = method.model
+    was_training = model is not None and model.training
+    if model is not None:
+        model.eval()
     loader = torch.utils.data.DataLoader(dataset, batch_size=batch_size, shuffle=False)
     per_image: dict[str, list] = {}
     rows: list[dict] = []
@@ -56,18 +130,18 @@ def evaluate(
     if predictions_dir is not None:
         predictions_dir.mkdir(parents=True, exist_ok=True)
     for batch in loader:
-        x = batch["input"].to(device)
         gt = batch["target"].to(device)
         h, w = gt.shape[-2:]
-        scale = batch["translation"].norm(dim=1).to(device) / nominal_displacement
-        pred_q = model(x)[0] * scale.view(-1, 1, 1, 1)
-        pred = metrics.upsample_to(pred_q, h, w)
+        out = predict(method, batch, device)
+        pred = out["depth"]
         m = metrics.image_metrics(pred, gt)
-        m["depth_error"] = metrics.original_depth_error(pred_q, gt)
+        m["depth_error"] = metrics.original_depth_error(out["depth_q"], gt)
+        if "flow" in out:
+            m["epe"] = flow.endpoint_error(out["flow"], out["gt_flow"])
         for k, v in m.items():
             per_image.setdefault(k, []).append(v.cpu())
         pred, gt = pred.cpu(), gt.cpu()
-        for b in range(x.shape[0]):
+        for b in range(gt.shape[0]):
             scene, (i1, i2) = int(batch["scene"][b]), batch["frames"][b].tolist()
             rows.append(
                 {
@@ -107,7 +181,8 @@ def evaluate(
                         "foe": geometry.focus_of_expansion(K, t),
                     }
                 )
-    model.train(was_training)
+    if model is not None:
+        model.train(was_training)
     stacked = {k: torch.cat(v).numpy() for k, v in per_image.items()}
     summary = metrics.aggregate(stacked)  # valid_pixels decides which images count
     return EvalResult(

@@ -1,5 +1,10 @@
 """Networks of the StillBox benchmark and the registry that names them.
 
+Registered methods (``MODELS``): DepthNet (depth directly), FlowNetS with a depth head, FlowNetS
+for optical flow followed by depth from flow and the known translation (benchmark.flow), the same
+geometry fed with ground-truth flow (``oracle-flow``) and a constant depth (``constant``); the last
+two have no network. FlowNetS lives in benchmark.flownets.
+
 DepthNet (Pinard et al., thesis section 3.5) is FlowNetS with every width halved, 3×3 kernels
 everywhere, BatchNorm and a 1-channel depth output. It reads two stacked RGB frames,
 (B, 6, H, W), and predicts depth in metres at five scales, finest (H/4) first.
@@ -18,6 +23,8 @@ from dataclasses import dataclass, field
 import torch
 import torch.nn.functional as F
 from torch import nn
+
+from .flownets import FlowNetS
 
 BN_EPS = 1e-3
 DEPTH_CLAMP_M = (10.0, 60.0)  # range of the optional output clamp, metres (as the public code)
@@ -183,20 +190,36 @@ def _depthnet_defaults() -> dict:
     }
 
 
+def _flow_defaults() -> dict:
+    """DepthNet's recipe; the loss is computed in flow / 20, as the public FlowNetS code."""
+    return {**_depthnet_defaults(), "loss_scale": 1.0 / 20.0}
+
+
+#: what a method outputs: a depth network, a flow network (depth by geometry), or no network
+OUTPUTS = ("depth", "flow", "oracle-flow", "constant")
+
+
 @dataclass(frozen=True)
 class ModelSpec:
-    """A registered model.
+    """A registered method.
 
-    ``build()`` returns a freshly initialised network; ``output`` names what it predicts
-    ("depth": metres, multi-scale list as DepthNet); ``defaults`` are its training
-    hyper-parameters (copy before modifying).
+    ``build()`` returns a freshly initialised network, or is None for methods without one
+    (``oracle-flow``, ``constant``: nothing to train). ``output`` says what the network predicts
+    and how depth is obtained: "depth" (metres, multi-scale list as DepthNet), "flow" (pixels,
+    multi-scale list; depth from flow and the known translation), "oracle-flow" (ground-truth
+    flow through the same geometry), "constant" (the training set's median depth everywhere).
+    ``defaults`` are its training hyper-parameters (copy before modifying).
     """
 
     name: str
     description: str
-    build: Callable[[], nn.Module]
+    build: Callable[[], nn.Module] | None
     output: str = "depth"
     defaults: dict = field(default_factory=_depthnet_defaults)
+
+    @property
+    def trainable(self) -> bool:
+        return self.build is not None
 
 
 MODELS: dict[str, ModelSpec] = {
@@ -212,6 +235,44 @@ MODELS: dict[str, ModelSpec] = {
             "DepthNet at 1/8 width, for tests and smoke runs",
             lambda: DepthNet(width=0.125),
         ),
+        ModelSpec(
+            "flownets-depth",
+            "FlowNetS (BN) with a 1-channel 1+ELU depth output, trained like DepthNet",
+            lambda: FlowNetS("depth", batch_norm=True),
+        ),
+        ModelSpec(
+            "flownets-depth-tiny",
+            "flownets-depth at 1/8 width, for tests and smoke runs",
+            lambda: FlowNetS("depth", width=0.125, batch_norm=True),
+        ),
+        ModelSpec(
+            "flownets-flow",
+            "FlowNetS (BN) for optical flow; depth from flow and the known translation",
+            lambda: FlowNetS("flow", batch_norm=True),
+            output="flow",
+            defaults=_flow_defaults(),
+        ),
+        ModelSpec(
+            "flownets-flow-tiny",
+            "flownets-flow at 1/8 width, for tests and smoke runs",
+            lambda: FlowNetS("flow", width=0.125, batch_norm=True),
+            output="flow",
+            defaults=_flow_defaults(),
+        ),
+        ModelSpec(
+            "oracle-flow",
+            "ground-truth flow -> depth by the FOE geometry (checks geometry vs metadata)",
+            None,
+            output="oracle-flow",
+            defaults={},
+        ),
+        ModelSpec(
+            "constant",
+            "the training set's median depth at every pixel (the floor to beat)",
+            None,
+            output="constant",
+            defaults={},
+        ),
     )
 }
 
@@ -222,13 +283,16 @@ def list_models() -> list[str]:
 
 
 def build_model(name: str) -> nn.Module:
-    """A freshly initialised model by registry name; ValueError for an unknown name."""
+    """A freshly initialised network by registry name; ValueError for an unknown name or a
+    method without a network (oracle-flow, constant)."""
     try:
         spec = MODELS[name]
     except KeyError:
         raise ValueError(
             f"unknown model {name!r}; registered models: {', '.join(list_models())}"
         ) from None
+    if spec.build is None:
+        raise ValueError(f"{name!r} has no network (nothing to build or train)")
     return spec.build()
 
 

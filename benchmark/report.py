@@ -8,14 +8,15 @@ import json
 from pathlib import Path
 
 import matplotlib
+import numpy as np
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
-from . import metrics, plots  # noqa: E402
+from . import metrics, models, plots  # noqa: E402
 from .evaluate import EvalResult  # noqa: E402
 
-COLUMNS = ("mae", "mre", "mle", "sae", "sle", "p1.25", "p1.25^2", "p1.25^3", "depth_error")
+COLUMNS = ("mae", "mre", "mle", "sae", "sle", "p1.25", "p1.25^2", "p1.25^3", "depth_error", "epe")
 HEADERS = (
     "MAE (m)",
     "MRE",
@@ -26,19 +27,73 @@ HEADERS = (
     "P1.25²",
     "P1.25³",
     "depth error (m)",
+    "EPE (px)",
 )
 # Thesis Tables 3.4 / 3.5 (StillBox validation set, 64 px) and the public code's depth error.
 THESIS_64 = {
     "depthnet": {"mae": 4.72, "mre": 0.26, "mle": 0.32, "depth_error": 4.65},
     "flownets-depth": {"mae": 5.72, "mre": 0.363, "mle": 0.276},
+    "flownets-flow": {"mae": 6.462, "mre": 0.203, "mle": 0.172},  # FlowNetS -> depth
 }
 DEPTH_ERROR_FORMULA = (
     "original DepthNet 'depth error': mean |θ̃_1/4 − area_downsample(min(θ, 100))| at 1/4 "
-    "resolution, per image, then averaged like the other metrics"
+    "resolution, per image, then averaged like the other metrics (methods without a 1/4 depth "
+    "output: their full-resolution depth area-downsampled by 4)"
 )
+EPE_FORMULA = (
+    "EPE = E‖F̃ − F‖₂ (pixels) at full resolution (the 1/4 flow upsampled bilinearly) against the "
+    "exact flow of the second frame's pixels towards the first frame, over pixels whose point is "
+    "in front of both cameras; per image, then averaged like the other metrics"
+)
+SCALE_RULES = {
+    "depth": "prediction × |pair translation| / nominal displacement (known displacement; never "
+    "the ground-truth median)",
+    "flow": "depth from the predicted flow and the pair's known translation (FOE geometry, "
+    "benchmark.flow), clamped to [0.1, 100] m; every pixel scored, the FOE's included",
+    "oracle-flow": "depth from the exact flow and the pair's known translation (FOE geometry), "
+    "clamped to [0.1, 100] m; every pixel scored",
+    "constant": "one depth everywhere: the training split's median depth (no scale needed)",
+}
+FOE_BIN_EDGES = (0.0, 1.0, 2.0, 4.0, 8.0, 16.0, 32.0, 64.0, 128.0, np.inf)  # pixels
+
+
+def foe_bins(distance: np.ndarray, abs_err: np.ndarray) -> list[dict]:
+    """Error by distance to the FOE (pixels), over the scored pixel subsample: per bin
+    ``[lo, hi)`` the pixel count, mean and median absolute error (m). Pixels with the FOE at
+    infinity (lateral motion) are left out."""
+    rows = []
+    for lo, hi in zip(FOE_BIN_EDGES[:-1], FOE_BIN_EDGES[1:], strict=True):
+        sel = (distance >= lo) & (distance < hi) & np.isfinite(abs_err)
+        n = int(sel.sum())
+        rows.append(
+            {
+                "from_px": lo,
+                "to_px": None if np.isinf(hi) else hi,
+                "pixels": n,
+                "mae": float(abs_err[sel].mean()) if n else None,
+                "median_abs_err": float(np.median(abs_err[sel])) if n else None,
+            }
+        )
+    return rows
+
+
+def foe_table(rows: list[dict]) -> str:
+    lines = [
+        "| distance to FOE (px) | pixels | MAE (m) | median abs. error (m) |",
+        "|---|---|---|---|",
+    ]
+    for r in rows:
+        hi = "∞" if r["to_px"] is None else f"{r['to_px']:g}"
+        lines.append(
+            f"| [{r['from_px']:g}, {hi}) | {r['pixels']} | {_fmt(r['mae'])} | "
+            f"{_fmt(r['median_abs_err'])} |"
+        )
+    return "\n".join(lines)
 
 
 def _fmt(v) -> str:
+    if isinstance(v, float) and 0 < abs(v) < 1e-3:
+        return f"{v:.2e}"
     return "–" if v is None else f"{v:.3f}" if isinstance(v, float) else str(v)
 
 
@@ -78,6 +133,7 @@ def write_run_report(run: Path, model: str, result: EvalResult, info: dict) -> d
             w.writerows(result.per_sample)
     px = result.pixels
     if px:
+        np.savez_compressed(run / "pixels.npz", **px)
         plots.error_vs_depth(px["gt"], px["abs_err"], plot_dir / "error_vs_depth.png")
         plots.error_vs_foe_distance(
             {model: (px["foe_distance"], px["abs_err"])}, plot_dir / "error_vs_foe_distance.png"
@@ -87,14 +143,20 @@ def write_run_report(run: Path, model: str, result: EvalResult, info: dict) -> d
         plots.sample_grid(result.samples, plot_dir / "samples.png")
     if (run / "metrics.csv").exists():
         learning_curve(run / "metrics.csv", plot_dir / "learning_curve.png")
+    output = models.MODELS[model].output if model in models.MODELS else "depth"
+    bins = foe_bins(px["foe_distance"], px["abs_err"]) if px else []
+    formulas = {**metrics.FORMULAS, "depth_error": DEPTH_ERROR_FORMULA}
+    if "epe" in result.summary:
+        formulas["epe"] = EPE_FORMULA
     summary = {
         "model": model,
+        "output": output,
         **info,
         "metrics": result.summary,
-        "formulas": {**metrics.FORMULAS, "depth_error": DEPTH_ERROR_FORMULA},
+        "formulas": formulas,
         "averaging_rule": metrics.AVERAGING_RULE,
-        "scale": "prediction × |pair translation| / nominal displacement (known displacement; "
-        "never the ground-truth median)",
+        "scale": SCALE_RULES[output],
+        "error_by_foe_distance": bins,
         "thesis_reference_64px": THESIS_64.get(model.removesuffix("-tiny")),
     }
     (run / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
@@ -110,11 +172,33 @@ def write_run_report(run: Path, model: str, result: EvalResult, info: dict) -> d
         "",
         markdown_table(rows),
         "",
+        f"Depth: {SCALE_RULES[output]}.",
+        "",
+        "Error by distance to the focus of expansion (pixel subsample of `pixels.npz`; lateral "
+        "pairs, FOE at infinity, left out):",
+        "",
+        foe_table(bins),
+        "",
         "Plots: `plots/` (error vs depth, vs distance to the focus of expansion, vs estimate, "
         "samples, learning curve). Per-pair metrics: `per_sample.csv`.",
     ]
     (run / "summary.md").write_text("\n".join(md) + "\n")
     return summary
+
+
+def compare_figure(runs: list[Path], path: Path) -> bool:
+    """Error vs distance to the FOE with every run that has ``pixels.npz`` on one figure
+    (thesis Fig. 3.14); False (nothing written) when none has."""
+    curves = {}
+    for run in runs:
+        if (run / "pixels.npz").is_file():
+            s = json.loads((run / "summary.json").read_text())
+            with np.load(run / "pixels.npz") as px:
+                label = s["model"] if s["model"] not in curves else f"{s['model']} ({run.name})"
+                curves[label] = (px["foe_distance"], px["abs_err"])
+    if curves:
+        plots.error_vs_foe_distance(curves, path)
+    return bool(curves)
 
 
 def compare_runs(runs: list[Path]) -> tuple[str, str]:

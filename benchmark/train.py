@@ -1,4 +1,9 @@
-"""Supervised training of a registered depth model (REFERENCE §5 recipe), resumable exactly.
+"""Supervised training of a registered network (REFERENCE §5 recipe), resumable exactly.
+
+Depth networks learn the rescaled depth of the second frame with the multi-scale L1 loss; flow
+networks learn the exact flow of the pair (data.PairDataset ``target="flow"``) with the
+multi-scale end-point error, times ``loss_scale`` (1/20: the public FlowNetS code's loss on
+flow / 20), and keep the checkpoint with the best validation EPE instead of the best MAE.
 
 Run folder written here: ``config.json``, ``environment.json``, ``steps.csv`` (loss every
 ``log_every`` steps), ``metrics.csv`` (one row per validation), ``tb/`` (TensorBoard) and
@@ -42,6 +47,7 @@ class TrainConfig:
     milestones: tuple[float, ...] = (19 / 55, 30 / 55, 44 / 55, 53 / 55)  # fractions of epochs
     gamma: float = 0.3
     loss_weights: tuple[float, ...] = (0.32, 0.08, 0.02, 0.01, 0.005)  # finest first
+    loss_scale: float = 1.0  # the loss is multiplied by this (1/20 for flow networks)
     shift: int = 3  # nominal frame shift
     device: str = "auto"
     threads: int = 0  # torch intra-op threads; 0 = torch's default
@@ -88,6 +94,33 @@ def multiscale_l1(outputs: list[torch.Tensor], target: torch.Tensor, weights) ->
     for out, w in zip(outputs, weights, strict=True):
         loss = loss + w * (out - F.adaptive_avg_pool2d(t, out.shape[-2:])).abs().mean()
     return loss
+
+
+def multiscale_epe(outputs: list[torch.Tensor], target: torch.Tensor, weights) -> torch.Tensor:
+    """Σ_s γ_s · mean‖out_s − area_downsample(target)‖₂ for (B, 2, H, W) flow targets.
+
+    NaN target pixels are left out: each scale's target is the mean of the valid pixels under
+    each output pixel, and output pixels covering no valid pixel are ignored. Flow values are
+    not rescaled with the resolution (all scales in input-resolution pixels).
+    """
+    valid = torch.isfinite(target).all(1, keepdim=True).to(target.dtype)
+    filled = torch.nan_to_num(target) * valid
+    loss = target.new_zeros(())
+    for out, w in zip(outputs, weights, strict=True):
+        size = out.shape[-2:]
+        share = F.adaptive_avg_pool2d(valid, size)
+        t = F.adaptive_avg_pool2d(filled, size) / share.clamp_min(1e-12)
+        keep = (share > 0)[:, 0]
+        epe = (out - t).norm(dim=1)
+        loss = loss + w * epe[keep].sum() / keep.sum().clamp_min(1)
+    return loss
+
+
+def multiscale_loss(outputs: list[torch.Tensor], target: torch.Tensor, weights) -> torch.Tensor:
+    """multiscale_l1 for (B, H, W) depth targets, multiscale_epe for (B, 2, H, W) flow."""
+    if target.ndim == 4:
+        return multiscale_epe(outputs, target, weights)
+    return multiscale_l1(outputs, target, weights)
 
 
 def save_checkpoint(path: Path, payload: dict) -> None:
@@ -151,6 +184,9 @@ class Trainer:
         cfg = self.cfg
         torch.manual_seed(cfg.seed)
         spec = models.MODELS[cfg.model]
+        if not spec.trainable:
+            raise ValueError(f"{cfg.model}: has no network to train")
+        self.output = spec.output  # "depth" or "flow"
         self.model = spec.build().to(self.device)
         self.nominal_displacement = None
         if cfg.pretrained:
@@ -186,7 +222,9 @@ class Trainer:
         # depth targets are expressed for the nominal shift of the training set's displacement
         disp = np.median([s.displacement for s in train_scenes])
         self.nominal_displacement = float(cfg.shift * disp)
-        self.train_set = PairDataset(self.train_store, "train", cfg.shift, cfg.seed)
+        self.train_set = PairDataset(
+            self.train_store, "train", cfg.shift, cfg.seed, target=self.output
+        )
         self.val_set = PairDataset(self.val_store, "eval", cfg.shift)
         self.per_rank_batch = max(1, cfg.batch_size // self.world)
         self.sampler = EpochSampler(len(self.train_set), cfg.seed, self.rank, self.world)
@@ -247,7 +285,7 @@ class Trainer:
 
     def validate(self) -> dict:
         result = evaluate.evaluate(
-            self.model,
+            evaluate.Method(self.output, self.model, self.nominal_displacement),
             self.val_set,
             self.device,
             self.cfg.eval_batch_size,
@@ -267,6 +305,7 @@ class Trainer:
                 "lr": self.opt.param_groups[0]["lr"],
                 "train_loss": train_loss,
                 **{f"val_{k}": val[k] for k in ("mae", "mre", "mle", "depth_error")},
+                **({"val_epe": val["epe"]} if "epe" in val else {}),
                 "samples_per_s": samples / seconds if seconds else 0.0,
                 "data_wait_share": wait / seconds if seconds else 0.0,
                 "seconds": seconds,
@@ -274,12 +313,15 @@ class Trainer:
             _append_csv(self.run / "metrics.csv", row)
             for k, v in row.items():
                 self.tb.add_scalar(f"epoch/{k}", v, st["global_step"])
+            epe = f", EPE {val['epe']:.3f} px" if "epe" in val else ""
             self.log(
                 f"step {st['global_step']}: train loss {train_loss:.3f}, val MAE "
-                f"{val['mae']:.3f} m, MRE {val['mre']:.3f}, MLE {val['mle']:.3f}"
+                f"{val['mae']:.3f} m, MRE {val['mre']:.3f}, MLE {val['mle']:.3f}{epe}"
             )
-            if val["mae"] < st["best"]:
-                st["best"] = val["mae"]
+            score = val["epe"] if self.output == "flow" else val["mae"]
+            if score < st["best"] or not (self.ckpt_dir / "best.pt").exists():
+                if score < st["best"]:  # a NaN score never becomes the best
+                    st["best"] = score
                 self.checkpoint("best")
         self.checkpoint("last")
 
@@ -314,7 +356,7 @@ class Trainer:
                 wait += time.perf_counter() - t_data
                 x = batch["input"].to(self.device, non_blocking=True)
                 y = batch["target"].to(self.device, non_blocking=True)
-                loss = multiscale_l1(self.net(x), y, cfg.loss_weights)
+                loss = multiscale_loss(self.net(x), y, cfg.loss_weights) * cfg.loss_scale
                 self.opt.zero_grad(set_to_none=True)
                 loss.backward()
                 self.opt.step()

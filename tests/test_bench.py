@@ -233,3 +233,143 @@ def test_bad_input_is_a_one_line_error(args, words):
 def test_list_shows_registered_models():
     out = bench("list").stdout
     assert "depthnet " in out and "depthnet-tiny" in out
+    assert "flownets-flow " in out and "38.68 M" in out and "oracle-flow" in out
+
+
+# --------------------------------------------------------------------------- flow baselines
+
+
+def test_flow_targets_follow_depth_translation_and_flips(store):
+    """Training flow targets = exact flow of frame i2 towards frame i1, flipped consistently."""
+    import torch
+
+    from benchmark.flow import flow_from_depth
+
+    ds = PairDataset(store, "train", shift=3, seed=0, target="flow")
+    seen = set()
+    for i in range(len(ds)):
+        item = ds[i]
+        k, _ = ds.items[i]
+        i1, i2 = item["frames"].tolist()
+        fh, fv = item["flips"].tolist()
+        scene = store.scenes[k]
+        depth = torch.from_numpy(store.depth(k, i2).astype(np.float64))
+        t = torch.from_numpy(scene.translation(i2, i1))  # second frame -> first frame
+        flow = flow_from_depth(depth, torch.from_numpy(scene.K), t).numpy()
+        if fh:
+            flow = flow[:, :, ::-1] * np.array([-1.0, 1.0])[:, None, None]
+        if fv:
+            flow = flow[:, ::-1] * np.array([1.0, -1.0])[:, None, None]
+        got = item["target"].numpy()
+        assert got.shape == (2, 64, 64)
+        np.testing.assert_allclose(got, flow, atol=2e-4, equal_nan=True)
+        if i1 == i2:
+            assert np.all(got == 0)
+        seen.add((fh, fv))
+    assert len(seen) == 4
+
+
+def _summary(run: Path) -> dict:
+    return json.loads((run / "summary.json").read_text())
+
+
+@pytest.mark.parametrize("model", ["flownets-depth-tiny", "flownets-flow-tiny"])
+def test_flownets_smoke_runs(tiny_dataset, tmp_path, model):
+    out = tmp_path / model
+    proc = bench(
+        "run", model, "--data", tiny_dataset, "--batch-size", 4, "--max-steps", 3, "--quiet",
+        "--log-every", 1, "--out", out,
+    )  # fmt: skip
+    assert "MAE" in proc.stdout
+    for name in ("summary.md", "per_sample.csv", "pixels.npz", "checkpoints/best.pt"):
+        assert (out / name).is_file(), name
+    assert (out / "plots" / "error_vs_foe_distance.png").is_file()
+    s = _summary(out)
+    assert s["metrics"]["images"] > 0 and math.isfinite(s["metrics"]["mae"])
+    assert all(math.isfinite(v) for v in _losses(out).values())
+    metrics_csv = (out / "metrics.csv").read_text()
+    if model == "flownets-flow-tiny":
+        assert "EPE" in proc.stdout and math.isfinite(s["metrics"]["epe"])
+        assert "val_epe" in metrics_csv and "epe" in s["formulas"]
+        assert s["output"] == "flow" and "known translation" in s["scale"]
+        # ill-posed near the FOE, but every pixel stays in the score: all pixels counted
+        assert sum(b["pixels"] for b in s["error_by_foe_distance"]) > 0
+    else:
+        assert "epe" not in s["metrics"] and s["thesis_reference_64px"]["mae"] == 5.72
+
+
+def test_oracle_flow_returns_ground_truth_and_constant_is_the_median(tiny_dataset, tmp_path):
+    """oracle-flow: the geometry and the dataset's motion metadata agree (exact depth back from
+    the exact flow, every pixel scored); constant: the training split's median depth."""
+    oracle = tmp_path / "oracle"
+    proc = bench("run", "oracle-flow", "--data", tiny_dataset, "--quiet", "--out", oracle)
+    assert "EPE 0.000 px" in proc.stdout
+    s = _summary(oracle)
+    m = s["metrics"]
+    assert m["mae"] < 1e-4 and m["mre"] < 1e-5 and m["p1.25"] > 0.9999 and m["epe"] == 0
+    assert not (oracle / "checkpoints").exists() and (oracle / "plots" / "samples.png").is_file()
+    assert s["metrics_with_flow_noise"]["mae"] > 10 * m["mae"]
+    near = [b for b in s["error_by_foe_distance_with_flow_noise"] if b["pixels"] >= 10]
+    assert near[0]["median_abs_err"] > near[-1]["median_abs_err"]  # worse near the FOE
+    assert "Sensitivity" in (oracle / "summary.md").read_text()
+
+    const = tmp_path / "constant"
+    bench("run", "constant", "--data", tiny_dataset, "--quiet", "--out", const)
+    s = _summary(const)
+    scenes = load_scenes(tiny_dataset, "train")
+    depths = FrameStore(scenes, progress=False)._depth
+    assert s["constant_depth"] == pytest.approx(float(np.median(np.clip(depths, 0, 100))))
+    assert s["metrics"]["mae"] > 1.0 and "median" in s["constant_rule"]
+
+
+def test_compare_makes_one_table_and_one_figure(tiny_dataset, tmp_path):
+    out = tmp_path / "cmp"
+    models = "depthnet-tiny,flownets-flow-tiny,oracle-flow,constant"
+    args = ["compare", "--data", tiny_dataset, "--models", models, "--batch-size", 4]
+    proc = bench(*args, "--max-steps", 1, "--quiet", "--out", out)
+    table = (out / "comparison.md").read_text()
+    for name in models.split(","):
+        assert f"| {name} ({name})" in table
+        assert (out / name / "summary.json").is_file()
+    assert "EPE (px)" in table and (out / "comparison-error_vs_foe_distance.png").is_file()
+    assert (out / "comparison.csv").read_text().count("\n") == 5
+    assert proc.stdout.count("running into") == 4
+    again = bench(*args, "--max-steps", 1, "--quiet", "--out", out)  # finished runs are reused
+    assert again.stdout.count("reusing") == 4
+    proc = bench("report", out / "oracle-flow", out / "constant", "--out", tmp_path / "r")
+    assert (tmp_path / "r-error_vs_foe_distance.png").is_file()
+
+
+def test_speed_table(tmp_path):
+    import torch
+
+    proc = bench(
+        "speed", "--models", "depthnet-tiny,flownets-flow-tiny", "--resolutions", "64,128",
+        "--time-res", 64, "--warmup", 1, "--repeats", 2, "--threads", 1, "--out", tmp_path,
+    )  # fmt: skip
+    (path,) = tmp_path.glob("speed-*.csv")
+    version = torch.__version__.replace("+", "-")
+    assert f"-1t-torch{version}.csv" in path.name and path.name.startswith("speed-cpu")
+    rows = list(csv.DictReader(path.read_text().splitlines()))
+    assert [r["model"] for r in rows] == ["depthnet-tiny", "flownets-flow-tiny"]
+    for r in rows:
+        assert float(r["params_m"]) > 0 and float(r["latency_ms_b1"]) > 0
+        assert float(r["fps_b8"]) > 0 and r["repeats"] == "2"
+        assert float(r["gmac_128"]) == pytest.approx(4 * float(r["gmac_64"]), abs=3e-6)
+    assert "depthnet-tiny" in proc.stdout and str(path) in proc.stdout
+
+
+@pytest.mark.parametrize(
+    ("args", "words"),
+    [
+        (["compare", "--data", ".", "--models", "depthnet,nope"], ["--models", "nope"]),
+        (["speed", "--models", "oracle-flow"], ["--models", "no network"]),
+        (["speed", "--resolutions", "64,100"], ["--resolutions"]),
+        (["compare", "--data", ".", "--models", ","], ["--models", "empty"]),
+    ],
+)
+def test_bad_flow_benchmark_input_is_a_one_line_error(args, words):
+    proc = bench(*args, check=False)
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2 and len(lines) == 1, proc.stderr
+    assert all(w in lines[0] for w in words), lines[0]

@@ -6,8 +6,10 @@ import pytest
 import torch
 import torch.nn.functional as F
 
+from benchmark.flownets import FlowNetS
 from benchmark.models import (
     MODELS,
+    OUTPUTS,
     DepthNet,
     build_model,
     count_parameters,
@@ -99,13 +101,24 @@ def test_macs_restores_training_mode(tiny):
 
 def test_registry():
     assert {"depthnet", "depthnet-tiny"} <= set(list_models())
+    assert {"flownets-depth", "flownets-flow", "oracle-flow", "constant"} <= set(list_models())
     assert list_models() == sorted(MODELS)
     for spec in MODELS.values():
-        assert spec.output == "depth"
-        d = spec.defaults
+        assert spec.output in OUTPUTS
+        assert spec.trainable == (spec.output in ("depth", "flow"))
+        if not spec.trainable:
+            with pytest.raises(ValueError, match="no network"):
+                build_model(spec.name)
+            continue
+        d = spec.defaults  # every network is trained like DepthNet (thesis Table 3.5)
         assert d["lr"] == 1e-2 and d["batch_size"] == 256 and d["epochs"] == 55
         assert [round(f * d["epochs"]) for f in d["milestones"]] == [19, 30, 44, 53]
         assert d["loss_weights"] == (0.32, 0.08, 0.02, 0.01, 0.005)
+        assert d.get("loss_scale", 1.0) == (1 / 20 if spec.output == "flow" else 1.0)
+        model = spec.build().eval()
+        channels = 2 if spec.output == "flow" else 1
+        with torch.no_grad():
+            assert model(torch.zeros(1, 6, 64, 64))[0].shape == (1, channels, 16, 16)
     with pytest.raises(ValueError, match="depthnet-tiny"):
         build_model("nope")
 
@@ -153,3 +166,68 @@ def test_sgd_step_decreases_loss():
     with torch.no_grad():
         after = loss()
     assert after.item() < before.item()
+
+
+# FlowNetS (REFERENCE §4): encoder convs 6→64 (7×7), 64→128 (5×5), 128→256 (5×5), then 3×3
+# 256→256, 256→512, 512→512, 512→512, 512→512, 512→1024, 1024→1024, with biases: 24,050,752;
+# bias-free 4×4 deconvs 1024→512, 1026→256, 770→128, 386→64: 14,563,328; bias-free 3×3
+# predict_flow convs from 1024, 1026, 770, 386, 194 channels to 2: 61,200; four bias-free 4×4
+# 2→2 up-convs: 256. Total 38,675,536 ≈ REFERENCE's "≈ 38.7 M".
+FLOWNETS_PARAMETERS = 38_675_536
+
+
+def test_flownets_parameter_count():
+    n = count_parameters(FlowNetS("flow"))
+    assert n == FLOWNETS_PARAMETERS
+    assert n == 24_050_752 + 14_563_328 + 61_200 + 256
+    assert abs(n - 38.7e6) / 38.7e6 < 0.001
+    # batch norm (the registry's trained variants): conv biases replaced by BN weight + bias
+    encoder_channels = 64 + 128 + 256 + 256 + 512 + 512 + 512 + 512 + 1024 + 1024
+    assert count_parameters(FlowNetS("flow", batch_norm=True)) == n + encoder_channels
+    # depth head: 1 output channel instead of 2, so one channel less in each concatenation:
+    # predict convs 9·(2·c − (c − 1)) fewer for c = 1026, 770, 386, 194 and 9·1024 for the
+    # coarsest, up-convs 4·(64 − 16), deconvs fed by a concatenation 16·(256 + 128 + 64)
+    depth = count_parameters(FlowNetS("depth"))
+    fewer = 9 * (1024 + 1027 + 771 + 387 + 195) + 4 * 48 + 16 * (256 + 128 + 64)
+    assert depth == n - fewer == 38_637_540
+    assert count_parameters(MODELS["flownets-flow"].build()) == n + encoder_channels
+    assert count_parameters(DepthNet()) * 3.7 < n  # thesis: DepthNet has ~4-5x fewer
+
+
+def test_flownets_macs_and_outputs():
+    model = FlowNetS("flow").eval()
+    assert abs(macs(model, 512, 512) - 21e9) / 21e9 < 0.01  # REFERENCE: ≈ 21 GMAC at 512 px
+    tiny = build_model("flownets-flow-tiny").eval()
+    with torch.no_grad():
+        outs = tiny(torch.randn(2, 6, 64, 128))
+        depth = build_model("flownets-depth-tiny").eval()(torch.randn(2, 6, 64, 128))
+    assert [tuple(o.shape) for o in outs] == [(2, 2, 64 // s, 128 // s) for s in (4, 8, 16, 32, 64)]
+    assert [tuple(o.shape) for o in depth] == expected_shapes(2, 64, 128)
+    assert all(bool((o > 0).all()) for o in depth)
+    assert count_parameters(tiny) < FLOWNETS_PARAMETERS / 50
+    with pytest.raises(ValueError, match="FlowNetS"):
+        tiny(torch.randn(1, 6, 64, 96))
+
+
+def test_flownets_trains_on_flow():
+    """One SGD step lowers the multi-scale EPE of the tiny flow variant."""
+    from benchmark.train import multiscale_loss
+
+    torch.manual_seed(0)
+    model = build_model("flownets-flow-tiny").train()
+    d = MODELS["flownets-flow-tiny"].defaults
+    x = torch.randn(4, 6, 64, 64)
+    target = torch.randn(4, 2, 64, 64)
+    target[0, :, :8] = float("nan")  # invalid pixels are ignored
+
+    def loss() -> torch.Tensor:
+        return multiscale_loss(model(x), target, d["loss_weights"]) * d["loss_scale"]
+
+    opt = torch.optim.SGD(model.parameters(), lr=1e-2, momentum=0.9)
+    before = loss()
+    assert torch.isfinite(before)
+    opt.zero_grad()
+    before.backward()
+    opt.step()
+    with torch.no_grad():
+        assert loss().item() < before.item()

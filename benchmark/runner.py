@@ -1,0 +1,204 @@
+"""One benchmark run per method: train (networks) and score, writing the run folder.
+
+Networks (``depth`` and ``flow`` outputs) are trained by train.Trainer, then their best
+checkpoint is scored; methods without a network (``oracle-flow``, ``constant``) are scored
+directly. Either way the run folder gets ``config.json``, ``environment.json``,
+``summary.json`` / ``summary.md``, ``per_sample.csv``, ``pixels.npz`` and ``plots/``.
+Errors a user can fix are raised as ValueError with a one-line message.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from . import models
+from .data import MAX_DEPTH, FrameStore, PairDataset, Scene, load_scenes, read_depth
+from .evaluate import Method, evaluate
+from .report import foe_bins, foe_table, write_run_report
+from .train import TrainConfig, Trainer, environment, load_checkpoint, resolve_device
+
+MEDIAN_FRAMES = 2000  # at most this many training frames (evenly spread) for the constant
+ORACLE_FLOW_NOISE_PX = 0.05  # oracle-flow is also scored with this much flow noise (sensitivity)
+
+
+def eval_split(data: Path, split: str, shift: int, progress: bool) -> tuple[str, list, PairDataset]:
+    """(split actually used, its scenes, eval-mode PairDataset); test falls back to val."""
+    scenes = load_scenes(data, split)
+    if not scenes and split == "test":
+        split, scenes = "val", load_scenes(data, "val")
+    if not scenes:
+        raise ValueError(f"--data: '{data}' has no scenes in split '{split}'")
+    return split, scenes, PairDataset(FrameStore(scenes, progress=progress), "eval", shift)
+
+
+def median_depth(scenes: list[Scene], max_frames: int = MEDIAN_FRAMES) -> tuple[float, int]:
+    """Median ground-truth depth (clipped to 100 m, as training targets) over every pixel of up
+    to ``max_frames`` frames spread evenly over ``scenes``; returns (metres, frames used)."""
+    frames = [(s, f) for s in scenes for f in range(len(s.depth))]
+    if not frames:
+        raise ValueError("--data: no training scenes to take the median depth from")
+    pick = np.unique(np.linspace(0, len(frames) - 1, min(max_frames, len(frames))).astype(int))
+    values = [np.clip(read_depth(frames[i][0].depth[frames[i][1]]), 0, MAX_DEPTH) for i in pick]
+    return float(np.median(np.concatenate([v.reshape(-1) for v in values]))), len(pick)
+
+
+def score_checkpoint(
+    ckpt: Path,
+    data: Path,
+    split: str,
+    out: Path,
+    device: str,
+    batch_size: int,
+    save_predictions: bool,
+    progress: bool = True,
+) -> dict:
+    """Evaluate a checkpoint on a split and write summary.json/.md, per_sample.csv, plots/."""
+    ck = load_checkpoint(ckpt)
+    name = ck["model_name"]
+    model = models.build_model(name)
+    model.load_state_dict(ck["model"])
+    dev = resolve_device(device)
+    model.to(dev)
+    shift = ck.get("shift", 3)
+    split, scenes, dataset = eval_split(data, split, shift, progress)
+    method = Method(models.MODELS[name].output, model, ck["nominal_displacement"])
+    t0 = time.perf_counter()
+    result = evaluate(
+        method,
+        dataset,
+        dev,
+        batch_size,
+        predictions_dir=out / "predictions" if save_predictions else None,
+    )
+    info = {
+        "dataset": str(data),
+        "split": split,
+        "scenes": len(scenes),
+        "shift": shift,
+        "checkpoint": str(ckpt),
+        "nominal_displacement": ck["nominal_displacement"],
+        "training_state": ck.get("state"),
+        "eval_seconds": round(time.perf_counter() - t0, 2),
+    }
+    return write_run_report(out, name, result, info)
+
+
+def score_baseline(
+    name: str,
+    data: Path,
+    out: Path,
+    split: str = "test",
+    device: str = "auto",
+    batch_size: int = 64,
+    save_predictions: bool = False,
+    shift: int = 3,
+    progress: bool = True,
+) -> dict:
+    """Score a method without a network (oracle-flow, constant); writes the run folder."""
+    spec = models.MODELS[name]
+    if spec.trainable:
+        raise ValueError(f"{name}: a network; train it with 'run'")
+    dev = resolve_device(device)
+    out.mkdir(parents=True, exist_ok=True)
+    info: dict = {"dataset": str(data)}
+    method = Method(spec.output)
+    if spec.output == "constant":
+        method.constant, frames = median_depth(load_scenes(data, "train"))
+        info["constant_depth"] = method.constant
+        info["constant_rule"] = (
+            f"median of the training split's ground-truth depth clipped to {MAX_DEPTH:g} m, over "
+            f"every pixel of {frames} frames spread evenly over the split"
+        )
+    split, scenes, dataset = eval_split(data, split, shift, progress)
+    config = {"model": name, "data": str(data), "split": split, "shift": shift, "device": device}
+    (out / "config.json").write_text(json.dumps(config, indent=2) + "\n")
+    (out / "environment.json").write_text(json.dumps(environment(dev), indent=2) + "\n")
+    t0 = time.perf_counter()
+    result = evaluate(
+        method,
+        dataset,
+        dev,
+        batch_size,
+        predictions_dir=out / "predictions" if save_predictions else None,
+    )
+    info.update(split=split, scenes=len(scenes), shift=shift)
+    info["eval_seconds"] = round(time.perf_counter() - t0, 2)
+    summary = write_run_report(out, name, result, info)
+    if spec.output == "oracle-flow":
+        _oracle_sensitivity(out, summary, dataset, dev, batch_size)
+    return summary
+
+
+def _oracle_sensitivity(out: Path, summary: dict, dataset, dev, batch_size: int) -> None:
+    """Score oracle-flow again with a little Gaussian flow noise; add the metrics and the error
+    by FOE distance to summary.json / summary.md: how the geometry degrades near the FOE."""
+    noisy = evaluate(
+        Method("oracle-flow", flow_noise=ORACLE_FLOW_NOISE_PX), dataset, dev, batch_size
+    )
+    bins = foe_bins(noisy.pixels["foe_distance"], noisy.pixels["abs_err"])
+    summary["flow_noise_px"] = ORACLE_FLOW_NOISE_PX
+    summary["metrics_with_flow_noise"] = noisy.summary
+    summary["error_by_foe_distance_with_flow_noise"] = bins
+    (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    m = noisy.summary
+    text = [
+        "",
+        f"## Sensitivity: exact flow + N(0, {ORACLE_FLOW_NOISE_PX:g} px) noise per component",
+        "",
+        f"MAE {m['mae']:.3f} m, MRE {m['mre']:.3f}, MLE {m['mle']:.3f}. Error by distance to "
+        "the FOE (the ill-conditioning near the FOE, REFERENCE §7):",
+        "",
+        foe_table(bins),
+    ]
+    with open(out / "summary.md", "a") as f:
+        f.write("\n".join(text) + "\n")
+
+
+def train_and_score(cfg: TrainConfig) -> dict | None:
+    """Train ``cfg.model`` into ``cfg.out``, then score its best checkpoint on the test split
+    (val when test is empty). Returns the summary (None on non-zero DDP ranks)."""
+    out = Path(cfg.out)
+    out.mkdir(parents=True, exist_ok=True)
+    trainer = Trainer(cfg)
+    trainer.setup()
+    t0 = time.perf_counter()
+    trainer.fit()
+    train_seconds = time.perf_counter() - t0
+    if not trainer.main:
+        return None
+    summary = score_checkpoint(
+        out / "checkpoints" / "best.pt",
+        Path(cfg.data),
+        "test",
+        out,
+        cfg.device,
+        cfg.eval_batch_size,
+        cfg.save_predictions,
+        progress=cfg.progress,
+    )
+    summary["training_seconds"] = round(train_seconds, 1)
+    (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    return summary
+
+
+def train_config(model: str, data: Path, out: Path, **overrides) -> TrainConfig:
+    """The model's registry defaults, then ``overrides`` (None values ignored)."""
+    names = {f.name for f in dataclasses.fields(TrainConfig)}
+    defaults = {k: v for k, v in models.MODELS[model].defaults.items() if k in names}
+    cfg = TrainConfig(model=model, data=str(data), out=str(out), **defaults)
+    return dataclasses.replace(cfg, **{k: v for k, v in overrides.items() if v is not None})
+
+
+def run_method(model: str, data: Path, out: Path, **overrides) -> dict | None:
+    """``stillbox-bench run``: train and score a network, or score a method without one."""
+    spec = models.MODELS[model]
+    if not spec.trainable:
+        o = {k: overrides[k] for k in ("device", "save_predictions") if k in overrides}
+        o = {k: v for k, v in o.items() if v is not None}
+        return score_baseline(model, data, out, progress=overrides.get("progress", True), **o)
+    return train_and_score(train_config(model, data, out, **overrides))
