@@ -32,17 +32,9 @@ demo: $(STAMP)
 	$(BIN)/stillbox-bench run depthnet --data data/demo-64 --epochs 5 --batch-size 32 --out runs/demo-depthnet
 	cat runs/demo-depthnet/summary.md
 
-# Whole-process generation speed (start-up and writing included) at 64/128/256 px, 1 vs 2 workers.
-BENCH_DIR ?= /tmp/stillbox-bench-gen
+# Whole-process generation speed and PSNR at 64/128/256 px, every quality level vs a plain config.
 bench-gen: $(STAMP)
-	@for spec in 64:40 128:16 256:6; do res=$${spec%:*}; n=$${spec#*:}; \
-	  for w in 1 2; do rm -rf $(BENCH_DIR); start=$$(date +%s.%N); \
-	    $(BIN)/stillbox-gen --res $$res --scenes $$n --workers $$w --out $(BENCH_DIR) --quiet 2>/dev/null; \
-	    end=$$(date +%s.%N); \
-	    $(BIN)/python -c "import sys; r,n,w,s,e=sys.argv[1:]; t=float(e)-float(s); \
-	      print(f'{r:>4} px  workers {w}  {n} scenes  {t:6.1f} s  {int(n)*10/t:6.1f} frames/s')" \
-	      $$res $$n $$w $$start $$end; \
-	  done; done; rm -rf $(BENCH_DIR)
+	$(BIN)/stillbox-gen bench --csv bench-gen.csv
 
 clean:
 	rm -rf $(VENV) data/demo-64 data/demo-64-preview.png runs/demo-depthnet .pytest_cache .ruff_cache

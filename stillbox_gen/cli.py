@@ -124,7 +124,14 @@ def parse_point(value: str) -> tuple[float, float]:
     type=float,
     help="Constant camera rotation, degrees per frame (unstabilised).  [default: preset, 0]",
 )
-@click.option("--samples", type=int, help="Cycles samples per pixel.  [default: preset, 4]")
+@click.option(
+    "--quality",
+    type=click.Choice(list(config.QUALITY)),
+    help="fast: 1 sample, no denoiser; default: 1 sample + OIDN; high: 4 samples + OIDN "
+    "high quality (README has the measured costs).  "
+    "[default: preset]",
+)
+@click.option("--samples", type=int, help="Cycles samples per pixel (after --quality).")
 @click.option(
     "--image-format",
     type=click.Choice(config.IMAGE_FORMATS),
@@ -138,6 +145,11 @@ def parse_point(value: str) -> tuple[float, float]:
 @click.option(
     "--split",
     help="Shares of scenes in train,val,test (by scene, from (seed, k)).  [default: 0.8,0.1,0.1]",
+)
+@click.option(
+    "--shard",
+    help="I/N: render only scenes k with k % N == I (0 <= I < N), for job arrays writing to one "
+    "folder; the last shard to finish indexes it (or run `stillbox-gen index OUT`).",
 )
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 def generate(**o) -> None:
@@ -154,7 +166,9 @@ def generate(**o) -> None:
     c = cfg.camera
     res = f"{c.width}" if c.width == c.height else f"{c.width}x{c.height}"
     out = o["out"] or Path("data") / f"stillbox-{res}"
+    shard = parse_shard(o["shard"]) if o["shard"] else (0, 1)
     opts = RunOptions(
+        shard=shard,
         out=out,
         scenes=o["scenes"],
         workers=o["workers"],
@@ -165,8 +179,37 @@ def generate(**o) -> None:
         f"stillbox-gen: {o['scenes']} scenes of {c.frames} frames at {c.width}x{c.height} "
         f"(preset {cfg.preset}, seed {cfg.seed}) -> {out}"
     )
+    if shard != (0, 1):
+        banner += f", shard {shard[0]}/{shard[1]}"
     summary = run(cfg, opts, announce=lambda: click.echo(banner, err=True))
+    if summary.frames == 0:  # a shard that left scenes to others: nothing indexed yet
+        click.echo(
+            f"shard {shard[0]}/{shard[1]} done: {summary.rendered_now} scenes rendered in "
+            f"{summary.seconds:.1f} s; the dataset is indexed when every shard has finished",
+            err=True,
+        )
+        return
     click.echo("\n".join(["done:", *("  " + line for line in summary.lines())]), err=True)
+
+
+def parse_shard(value: str) -> tuple[int, int]:
+    try:
+        i, n = (int(v) for v in value.split("/"))
+    except ValueError:
+        raise ConfigError(f"--shard: expected I/N (e.g. 0/4), got '{value}'") from None
+    if not (n >= 1 and 0 <= i < n):
+        raise ConfigError(f"--shard: need N >= 1 and 0 <= I < N, got '{value}'")
+    return i, n
+
+
+@cli.command()
+@click.argument("dataset", type=click.Path(path_type=Path))
+def index(dataset: Path) -> None:
+    """Index a folder filled by --shard runs: metadata.json, manifest.parquet, dataset.json."""
+    from .generate import index_dataset
+
+    summary = index_dataset(dataset)
+    click.echo(f"{dataset}: indexed {summary.scenes} scenes, {summary.frames} frames")
 
 
 def build_config(o: dict) -> config.DatasetConfig:
@@ -190,7 +233,8 @@ def build_config(o: dict) -> config.DatasetConfig:
     ):
         if o[flag] is not None:
             cam[key] = o[flag]
-    render = {k: o[k] for k in ("samples", "image_format") if o[k] is not None}
+    render = dict(config.QUALITY[o["quality"]]) if o["quality"] else {}
+    render.update({k: o[k] for k in ("samples", "image_format") if o[k] is not None})
     if o["legacy"]:
         render["legacy"] = True
     mats = {}
@@ -263,6 +307,65 @@ def preview(dataset: Path, out: Path, scenes: int, max_depth: float) -> None:
         raise ConfigError("--scenes and --max-depth: must be positive")
     contact_sheet(dataset, out, scenes, max_depth)
     click.echo(f"wrote {out}")
+
+
+@cli.command()
+@click.option(
+    "--res",
+    "resolutions",
+    default="64:40,128:16,256:6",
+    show_default=True,
+    help="Comma-separated PIXELS:SCENES pairs (square frames).",
+)
+@click.option(
+    "--configs",
+    default="fast,default,high,plain",
+    show_default=True,
+    help="Render configurations: quality levels and 'plain' (8 samples, 1 bounce, no denoiser).",
+)
+@click.option("--workers", type=int, default=2, show_default=True, help="Blender worker processes.")
+@click.option(
+    "--psnr-scenes",
+    type=int,
+    default=2,
+    show_default=True,
+    help="Scenes whose first and last frames are re-rendered with 256 samples for PSNR.",
+)
+@click.option(
+    "--csv", "csv_path", type=click.Path(path_type=Path), help="Also write the table here."
+)
+def bench(resolutions: str, configs: str, workers: int, psnr_scenes: int, csv_path) -> None:
+    """Measure frames/s (whole process) and PSNR per resolution and configuration."""
+    import tempfile
+
+    from . import bench as b
+
+    pairs = []
+    for item in resolutions.split(","):
+        try:
+            px, n = (int(v) for v in item.split(":"))
+        except ValueError:
+            raise ConfigError(f"--res: expected PIXELS:SCENES pairs, got '{item}'") from None
+        if px <= 0 or n <= 0:
+            raise ConfigError(f"--res: pixels and scenes must be positive, got '{item}'")
+        pairs.append((px, n))
+    names = [n.strip() for n in configs.split(",") if n.strip()]
+    b.configurations(names)  # fails early on unknown names
+    if workers < 1 or psnr_scenes < 1:
+        raise ConfigError("--workers and --psnr-scenes: must be at least 1")
+    click.echo(f"environment: {generate_versions()}, {os.cpu_count()} CPUs", err=True)
+    with tempfile.TemporaryDirectory(prefix="stillbox-bench-") as tmp:
+        rows = b.run_bench(pairs, names, workers, psnr_scenes, Path(tmp), log=click.echo)
+    click.echo(b.markdown_table(rows))
+    if csv_path:
+        b.write_csv(rows, csv_path)
+        click.echo(f"wrote {csv_path}", err=True)
+
+
+def generate_versions() -> str:
+    from .generate import versions
+
+    return ", ".join(f"{k} {v}" for k, v in versions().items())
 
 
 def main(argv: list[str] | None = None) -> None:

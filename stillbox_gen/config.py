@@ -22,6 +22,10 @@ from . import camera
 PRIMITIVE_KINDS = ("cube", "sphere", "cone", "torus", "cylinder", "slab")
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp")
 IMAGE_FORMATS = ("png", "jpg")
+PATTERNS = ("noise", "voronoi", "wave", "magic", "checker", "brick", "gradient_stripes")
+# Smooth patterns converge at 1 sample + denoiser; the last three have hard edges that alias
+# (about 3-8 dB lower PSNR at 128 px, see `stillbox-gen bench`), so they are opt-in.
+SMOOTH_PATTERNS = PATTERNS[:4]
 
 
 class ConfigError(ValueError):
@@ -74,6 +78,7 @@ class MaterialsConfig:
     plain_ratio: float = 0.1  # share of the others with a plain colour
     glossy_ratio: float = 0.3  # share of surfaces with low roughness
     mirror_ratio: float = 0.05  # share of objects that are metallic mirrors
+    patterns: tuple[str, ...] = SMOOTH_PATTERNS  # procedural patterns drawn uniformly
     textures_dir: str | None = None
     texture_files: tuple[str, ...] = ()  # names relative to textures_dir, sorted
 
@@ -94,11 +99,29 @@ class LightConfig:
     colour_jitter: float = 0.15  # max deviation of light colour channels from white
 
 
+SHADINGS = ("direct", "path")
+# --quality: render-section values (measured with `stillbox-gen bench`, see README).
+DENOISE_QUALITIES = ("fast", "balanced", "high")  # OpenImageDenoise quality modes
+QUALITY = {
+    "fast": {"shading": "direct", "samples": 1, "denoise": False, "denoise_quality": "fast"},
+    "default": {"shading": "direct", "samples": 1, "denoise": True, "denoise_quality": "fast"},
+    "high": {"shading": "direct", "samples": 4, "denoise": True, "denoise_quality": "high"},
+}
+
+
 @dataclass(frozen=True)
 class RenderConfig:
-    samples: int = 4
-    denoise: bool = True
-    max_bounces: int = 2
+    """Cycles settings. ``shading``: "direct" = sun (hard shadows, highlights) + ambient term,
+    no diffuse bounces, so the only sampling noise is anti-aliasing; "path" = path tracing with
+    world light and ``max_bounces`` (diffuse capped at 1), noisier and slower.
+    ``max_bounces`` counts glossy bounces under "direct" (mirrors need 1)."""
+
+    shading: str = "direct"
+    samples: int = 1
+    denoise: bool = True  # OpenImageDenoise (albedo + normal guided, fast prefilter)
+    denoise_quality: str = "fast"
+    max_bounces: int = 1
+    persistent: bool = True  # keep scene data between the frames of a scene (same pixels)
     max_distance: float = 200.0  # metres, camera clip end; farther surfaces are misses
     near_clip: float = 0.05  # metres
     image_format: str = "png"  # png (lossless) or jpg
@@ -247,6 +270,9 @@ def validate(cfg: DatasetConfig) -> None:
         raise ConfigError(f"objects.kinds: unknown {bad}; choose from {list(PRIMITIVE_KINDS)}")
     _check_range("objects.size_range", o.size_range)
     _check_range("objects.distance_range", o.distance_range)
+    bad = [p for p in m.patterns if p not in PATTERNS]
+    if bad or not m.patterns:
+        raise ConfigError(f"materials.patterns: unknown {bad}; choose from {list(PATTERNS)}")
     for name in ("texture_ratio", "plain_ratio", "glossy_ratio", "mirror_ratio"):
         if not 0 <= getattr(m, name) <= 1:
             raise ConfigError(f"materials.{name}: must be in [0, 1]")
@@ -260,6 +286,14 @@ def validate(cfg: DatasetConfig) -> None:
             f"box.half_extent_range: smallest box ({b.half_extent_range[0]} m, offset "
             f"{b.offset_max} m) does not contain the {path_len:.2f} m camera path"
         )
+    if r.shading not in SHADINGS:
+        raise ConfigError(f"render.shading: must be one of {SHADINGS}, got {r.shading!r}")
+    if r.denoise_quality not in DENOISE_QUALITIES:
+        raise ConfigError(
+            f"render.denoise_quality: must be one of {DENOISE_QUALITIES}, got {r.denoise_quality!r}"
+        )
+    if r.max_bounces < 0:
+        raise ConfigError(f"render.max_bounces: must be >= 0, got {r.max_bounces}")
     if r.samples < 1:
         raise ConfigError(f"render.samples: must be >= 1, got {r.samples}")
     if r.image_format not in IMAGE_FORMATS:

@@ -8,6 +8,7 @@ complete scenes and redoes the rest, so a killed run resumes where it stopped.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import multiprocessing
 import os
@@ -35,6 +36,7 @@ class RunOptions:
     threads: int = 0  # Cycles threads per worker; 0 = all cores
     recycle_after: int = 200  # scenes per worker process before it is replaced
     progress: bool = True
+    shard: tuple[int, int] = (0, 1)  # (I, N): render only scene indices k with k % N == I
 
 
 @dataclass
@@ -133,8 +135,9 @@ def dataset_info(cfg: DatasetConfig, scenes: int, complete: bool, **extra) -> di
         "render": {
             "engine": "CYCLES",
             "device": "CPU",
+            "shading": r.shading,
             "samples": r.samples,
-            "denoiser": "OPENIMAGEDENOISE" if r.denoise else None,
+            "denoiser": f"OPENIMAGEDENOISE ({r.denoise_quality})" if r.denoise else None,
             "max_bounces": r.max_bounces,
             "view_transform": "Standard",
             "rgb": f"8-bit sRGB {r.image_format}",
@@ -146,8 +149,10 @@ def dataset_info(cfg: DatasetConfig, scenes: int, complete: bool, **extra) -> di
     }
 
 
-def pending_indices(out: Path, scenes: int) -> list[int]:
-    return [k for k in range(scenes) if not formats.record_path(out, k).is_file()]
+def pending_indices(out: Path, scenes: int, shard: tuple[int, int] = (0, 1)) -> list[int]:
+    """Scene indices of this shard without a record (round-robin: k % N == I)."""
+    i, n = shard
+    return [k for k in range(i, scenes, n) if not formats.record_path(out, k).is_file()]
 
 
 # ---------------------------------------------------------------- workers (bpy-free trampolines)
@@ -189,9 +194,10 @@ def render_pending(cfg: DatasetConfig, opts: RunOptions, todo: list[int], summar
     c, mat = cfg.camera, cfg.materials
     ctx = multiprocessing.get_context("spawn")
     init_args = (cfg.to_dict()["render"], c.width, c.height, opts.threads, mat.textures_dir)
+    shard_total = len(range(opts.shard[0], opts.scenes, opts.shard[1]))
     bar = tqdm(
-        total=opts.scenes,
-        initial=opts.scenes - len(todo),
+        total=shard_total,
+        initial=shard_total - len(todo),
         unit="scene",
         disable=not opts.progress,
         dynamic_ncols=True,
@@ -284,10 +290,15 @@ def folder_size(path: Path) -> int:
 
 
 def generate(cfg: DatasetConfig, opts: RunOptions, announce=lambda: None) -> Summary:
-    """Render and index a dataset; ``announce`` runs once the output folder is accepted."""
+    """Render and index a dataset; ``announce`` runs once the output folder is accepted.
+
+    With ``opts.shard`` = (I, N), only scenes k % N == I are rendered; the folder is indexed
+    (metadata, manifest, dataset.json complete) by whichever shard finds every scene present,
+    or later by :func:`index_dataset`. The result equals an unsharded run with the same seed.
+    """
     prepare_output(opts.out, cfg, opts.scenes)
     announce()
-    todo = pending_indices(opts.out, opts.scenes)
+    todo = pending_indices(opts.out, opts.scenes, opts.shard)
     summary = Summary()
     t0 = time.perf_counter()
     render_pending(cfg, opts, todo, summary)
@@ -299,6 +310,8 @@ def generate(cfg: DatasetConfig, opts: RunOptions, announce=lambda: None) -> Sum
         "threads_per_worker": opts.threads,
         "peak_rss_mb_per_worker": round(summary.peak_rss_mb, 1),
     }
+    if pending_indices(opts.out, opts.scenes):  # other shards still have work
+        return dataclasses.replace(summary, seconds=seconds, scenes=opts.scenes)
     final = finalize(opts.out, cfg, opts.scenes, run_info)
     final.rendered_now, final.seconds, final.peak_rss_mb = (
         summary.rendered_now,
@@ -307,3 +320,33 @@ def generate(cfg: DatasetConfig, opts: RunOptions, announce=lambda: None) -> Sum
     )
     final.bytes = folder_size(opts.out)
     return final
+
+
+def index_dataset(out: Path) -> Summary:
+    """Write metadata, manifest and a complete dataset.json for a folder filled by shards."""
+    info_path = out / DATASET_JSON
+    if not info_path.is_file():
+        raise ConfigError(f"DATASET: '{out}' has no {DATASET_JSON} (not a stillbox-gen dataset)")
+    info = json.loads(info_path.read_text())
+    cfg = config_from_dict(info["config"])
+    if cfg.fingerprint() != info["fingerprint"]:
+        raise ConfigError(f"DATASET: '{info_path}' config does not match its fingerprint")
+    missing = pending_indices(out, info["scenes"])
+    if missing:
+        shown = ", ".join(map(str, missing[:10])) + (" ..." if len(missing) > 10 else "")
+        raise ConfigError(
+            f"DATASET: '{out}' lacks {len(missing)} of {info['scenes']} scenes ({shown}); "
+            "run the missing shards first"
+        )
+    return finalize(out, cfg, info["scenes"], info.get("run", {"indexed_from": "shards"}))
+
+
+def config_from_dict(d: dict) -> DatasetConfig:
+    """Inverse of DatasetConfig.to_dict (lists back to tuples)."""
+    from . import config as c
+
+    def section(cls, values: dict):
+        return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in values.items()})
+
+    kwargs = {name: section(cls, d[name]) for name, cls in c.SECTIONS.items()}
+    return DatasetConfig(preset=d["preset"], seed=d["seed"], split=tuple(d["split"]), **kwargs)

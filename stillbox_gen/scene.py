@@ -19,7 +19,10 @@ import numpy as np
 from . import camera, shapes
 from .config import DatasetConfig, MaterialsConfig
 
-PATTERNS = ("noise", "voronoi", "wave", "checker", "brick", "magic", "gradient_stripes")
+# Pattern frequencies (features per metre), low enough that textures stay legible at 64 px with a
+# 90 deg FOV: one pixel covers distance / 32 metres, i.e. ~0.3 m at 10 m and ~1.5 m at 50 m.
+OBJECT_TEXTURE_SCALE = (0.3, 1.5)
+WALL_TEXTURE_SCALE = (0.02, 0.08)
 MAX_ATTEMPTS = 1000
 
 
@@ -28,7 +31,7 @@ class MaterialSpec:
     """Surface description. Colours are linear RGB in [0, 1]; ``scale`` in features per metre."""
 
     kind: str  # "procedural" | "image" | "plain"
-    pattern: str | None  # one of PATTERNS for procedural, else None
+    pattern: str | None  # one of config.PATTERNS for procedural, else None
     colors: list[list[float]]  # colour-ramp stops (procedural), one colour (plain), tint (image)
     positions: list[float]  # colour-ramp stop positions in [0, 1]
     scale: float  # texture features (or image tiles) per metre
@@ -162,7 +165,7 @@ def sample_material(
         return MaterialSpec(
             "plain", None, colors=[colour], positions=[], detail=0.0, image=None, **common
         )
-    pattern = PATTERNS[int(rng.integers(len(PATTERNS)))]
+    pattern = cfg.patterns[int(rng.integers(len(cfg.patterns)))]
     n = int(rng.integers(2, 5))
     # alternate dark and bright stops so every pattern has visible contrast
     colors = [
@@ -252,7 +255,7 @@ def sample_primitive(
     pose0 = np.array(cam.cam2world[0])
     location = pose0[:3, :3] @ (ray * distance) + pose0[:3, 3]
     rotation = camera.matrix_to_quat(camera.random_rotation(rng))
-    material = sample_material(rng, cfg.materials, (0.5, 4.0))
+    material = sample_material(rng, cfg.materials, OBJECT_TEXTURE_SCALE)
     return PrimitiveSpec(kind, dims, _rounded(location), _rounded(rotation), material)
 
 
@@ -294,7 +297,7 @@ def sample_box(rng: np.random.Generator, cfg: DatasetConfig) -> BoxSpec:
         center=_rounded(rng.uniform(-b.offset_max, b.offset_max, size=3)),
         half_extents=_rounded(rng.uniform(*b.half_extent_range, size=3)),
         material=sample_material(
-            rng, cfg.materials, (0.03, 0.3), allow_plain=False, allow_mirror=False
+            rng, cfg.materials, WALL_TEXTURE_SCALE, allow_plain=False, allow_mirror=False
         ),
     )
 

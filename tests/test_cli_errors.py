@@ -95,3 +95,15 @@ def test_validate_reports_problems_by_file(tmp_path):
     proc = run_cli("validate", tmp_path, check=False)
     assert proc.returncode == 1
     assert "dataset.json" in proc.stdout
+
+
+@pytest.mark.parametrize("value", ["2/2", "1", "a/b", "0/0", "-1/3"])
+def test_bad_shard_is_refused_before_any_write(tmp_path, value):
+    proc = run_cli("--shard", value, "--out", tmp_path / "x", check=False)
+    assert proc.returncode == 2 and "--shard" in proc.stderr
+    assert not (tmp_path / "x").exists()
+
+
+def test_unknown_bench_config_is_refused():
+    proc = run_cli("bench", "--configs", "default,ultra", check=False)
+    assert proc.returncode == 2 and "--configs: unknown ultra" in proc.stderr

@@ -255,3 +255,22 @@ def test_raising_scenes_extends_a_finished_dataset_without_touching_it(default_d
     changed = [n for n in before if before[n] != after[n]]
     assert sorted(changed) == ["0/metadata.json", "manifest.parquet"]
     assert run_cli("validate", ext).returncode == 0
+
+
+def test_two_shards_into_one_folder_equal_a_single_run(default_dataset, tmp_path):
+    """--shard 1/2 then 0/2 (any order, any time) gives the same files as one unsharded run."""
+    out = tmp_path / "sharded"
+    args = ["--res", 64, "--scenes", 4, "--seed", 3, "--out", out, "--quiet"]
+    first = run_cli(*args, "--shard", "1/2", "--workers", 1)
+    assert "shard 1/2 done: 2 scenes rendered" in first.stderr
+    assert not (out / "manifest.parquet").exists()
+    assert run_cli("validate", out, check=False).returncode == 1
+    missing = run_cli("index", out, check=False)
+    assert missing.returncode == 2 and "lacks 2 of 4 scenes (0, 2)" in missing.stderr
+    run_cli(*args, "--shard", "0/2")
+    tree_single, tree_sharded = _tree(default_dataset), _tree(out)
+    assert sorted(tree_single) == sorted(tree_sharded)
+    assert [n for n in tree_single if tree_single[n] != tree_sharded[n]] == []
+    assert json.loads((out / "dataset.json").read_text())["complete"] is True
+    assert run_cli("index", out).returncode == 0  # re-indexing is harmless
+    assert run_cli("validate", out).returncode == 0

@@ -25,6 +25,11 @@ _PATTERN_NODES = {
     "magic": ("ShaderNodeTexMagic", "Fac"),
 }
 
+# Texture-node Scale that makes one pattern period about one unit of the Mapping node, so that
+# MaterialSpec.scale is features per metre for every pattern (Blender's wave bands repeat every
+# 2*pi/10 units, magic's first term every 2*pi/5).
+_UNIT_SCALE = {"wave": 0.628, "gradient_stripes": 0.628, "magic": 1.256}
+
 
 def clear_scene() -> None:
     """Remove the previous scene's data; render settings and loaded photo textures stay."""
@@ -39,14 +44,14 @@ def _pattern(nodes, pattern: str, detail: float):
     node_type, output = _PATTERN_NODES[pattern]
     tex = nodes.new(node_type)
     if "Scale" in tex.inputs:  # the Mapping node carries the scale (features per metre)
-        tex.inputs["Scale"].default_value = 1.0
+        tex.inputs["Scale"].default_value = _UNIT_SCALE.get(pattern, 1.0)
     if pattern == "noise":
-        tex.inputs["Detail"].default_value = 3.0 * detail
+        tex.inputs["Detail"].default_value = 2.0 * detail
     elif pattern == "voronoi":
         tex.inputs["Randomness"].default_value = 0.5 + 0.5 * detail
     elif pattern == "wave":
-        tex.inputs["Distortion"].default_value = 10.0 * detail
-        tex.inputs["Detail"].default_value = 2.0
+        tex.inputs["Distortion"].default_value = 4.0 * detail
+        tex.inputs["Detail"].default_value = 1.0
     elif pattern == "gradient_stripes":
         tex.wave_profile = "SAW"
         tex.inputs["Distortion"].default_value = 2.0 * detail
@@ -54,22 +59,50 @@ def _pattern(nodes, pattern: str, detail: float):
         tex.inputs["Color1"].default_value = (1, 1, 1, 1)
         tex.inputs["Color2"].default_value = (0, 0, 0, 1)
     elif pattern == "brick":
-        tex.inputs["Mortar Size"].default_value = 0.02 + 0.05 * detail
+        tex.inputs["Brick Width"].default_value = 1.0
+        tex.inputs["Row Height"].default_value = 0.5
+        tex.inputs["Mortar Size"].default_value = 0.05 + 0.07 * detail
     elif pattern == "magic":
-        tex.turbulence_depth = 1 + int(detail * 4)
+        tex.turbulence_depth = 1 + int(detail * 2)
     return tex, output
 
 
-def make_material(name: str, spec: dict, textures_dir: str | None):
-    """Principled BSDF whose base colour follows the MaterialSpec (object-space, metric mapping)."""
+def make_material(name: str, spec: dict, textures_dir: str | None, ambient=None):
+    """Principled BSDF whose base colour follows the MaterialSpec (object-space, metric mapping).
+
+    ``ambient`` (linear RGB, strength included) adds an emission of base colour x ambient: the
+    noise-free ambient term of "direct" shading, in place of sampled world light.
+    """
     mat = bpy.data.materials.new(name)
     nodes, links = mat.node_tree.nodes, mat.node_tree.links
     bsdf = nodes.get("Principled BSDF") or nodes.new("ShaderNodeBsdfPrincipled")
     bsdf.inputs["Roughness"].default_value = spec["roughness"]
     bsdf.inputs["Metallic"].default_value = spec["metallic"]
-    if spec["kind"] == "plain":
+    colour = _base_colour(nodes, links, spec, textures_dir)
+    if colour is None:
         bsdf.inputs["Base Color"].default_value = (*spec["colors"][0], 1.0)
-        return mat
+    else:
+        links.new(colour, bsdf.inputs["Base Color"])
+    if ambient is not None and spec["metallic"] == 0:  # metals only reflect
+        mat.cycles.emission_sampling = "NONE"  # no light-tree build; same image
+        bsdf.inputs["Emission Strength"].default_value = 1.0
+        if colour is None:
+            rgb = [c * a for c, a in zip(spec["colors"][0], ambient, strict=True)]
+            bsdf.inputs["Emission Color"].default_value = (*rgb, 1.0)
+        else:
+            mix = nodes.new("ShaderNodeMix")
+            mix.data_type, mix.blend_type = "RGBA", "MULTIPLY"
+            mix.inputs["Factor"].default_value = 1.0
+            links.new(colour, mix.inputs["A"])
+            mix.inputs["B"].default_value = (*ambient, 1.0)
+            links.new(mix.outputs["Result"], bsdf.inputs["Emission Color"])
+    return mat
+
+
+def _base_colour(nodes, links, spec: dict, textures_dir: str | None):
+    """Output socket of the material's colour pattern, or None for a plain colour."""
+    if spec["kind"] == "plain":
+        return None
     coords = nodes.new("ShaderNodeTexCoord")
     mapping = nodes.new("ShaderNodeMapping")
     mapping.inputs["Location"].default_value = spec["offset"]
@@ -89,8 +122,7 @@ def make_material(name: str, spec: dict, textures_dir: str | None):
         tint.inputs["Factor"].default_value = 1.0
         links.new(tex.outputs["Color"], tint.inputs["A"])
         tint.inputs["B"].default_value = (*spec["colors"][0], 1.0)
-        links.new(tint.outputs["Result"], bsdf.inputs["Base Color"])
-        return mat
+        return tint.outputs["Result"]
     tex, output = _pattern(nodes, spec["pattern"], spec["detail"])
     links.new(mapping.outputs["Vector"], tex.inputs["Vector"])
     ramp = nodes.new("ShaderNodeValToRGB")
@@ -101,8 +133,7 @@ def make_material(name: str, spec: dict, textures_dir: str | None):
         el.position = pos
         el.color = (*colour, 1.0)
     links.new(tex.outputs[output], ramp.inputs["Fac"])
-    links.new(ramp.outputs["Color"], bsdf.inputs["Base Color"])
-    return mat
+    return ramp.outputs["Color"]
 
 
 def make_mesh_object(name: str, kind: str, dims, inward: bool = False):
@@ -119,25 +150,35 @@ def make_mesh_object(name: str, kind: str, dims, inward: bool = False):
     return obj
 
 
-def build_scene(spec: dict, textures_dir: str | None):
-    """Create objects, box, lights and camera of a SceneSpec dict; returns the camera object."""
+def build_scene(spec: dict, textures_dir: str | None, shading: str = "direct"):
+    """Create objects, box, lights and camera of a SceneSpec dict; returns the camera object.
+
+    ``shading`` "direct": delta sun + per-material ambient emission, black world (see RenderConfig).
+    "path": soft sun + world background light that reaches inside (walls cast no shadow).
+    """
     scene = bpy.context.scene
+    light = spec["light"]
+    direct = shading == "direct"
+    ambient = [c * light["ambient_strength"] for c in light["ambient_color"]] if direct else None
     for i, p in enumerate(spec["primitives"]):
         obj = make_mesh_object(f"prim{i:02d}_{p['kind']}", p["kind"], p["dimensions"])
         obj.location = p["location"]
         obj.rotation_mode = "QUATERNION"
         obj.rotation_quaternion = Quaternion(p["rotation"])
-        obj.data.materials.append(make_material(f"mat{i:02d}", p["material"], textures_dir))
+        obj.data.materials.append(
+            make_material(f"mat{i:02d}", p["material"], textures_dir, ambient)
+        )
 
     box = spec["box"]
     walls = make_mesh_object("walls", "cube", [2 * h for h in box["half_extents"]], inward=True)
     walls.location = box["center"]
     walls.visible_shadow = False  # lets the sun and the sky light the inside
-    walls.data.materials.append(make_material("walls", box["material"], textures_dir))
+    walls.data.materials.append(make_material("walls", box["material"], textures_dir, ambient))
 
-    light = spec["light"]
     sun_data = bpy.data.lights.new("sun", type="SUN")
     sun_data.energy = light["sun_strength"]
+    if direct:
+        sun_data.angle = 0.0  # a delta light: one deterministic shadow ray per shading point
     sun_data.color = light["sun_color"]
     sun = bpy.data.objects.new("sun", sun_data)
     sun.rotation_mode = "QUATERNION"
@@ -147,7 +188,7 @@ def build_scene(spec: dict, textures_dir: str | None):
     world = bpy.data.worlds.new("sky")
     bg = world.node_tree.nodes["Background"]
     bg.inputs["Color"].default_value = (*light["ambient_color"], 1.0)
-    bg.inputs["Strength"].default_value = light["ambient_strength"]
+    bg.inputs["Strength"].default_value = 0.0 if direct else light["ambient_strength"]
     scene.world = world
 
     cam_spec = spec["camera"]

@@ -43,8 +43,10 @@ def init_worker(
     cy.use_denoising = render["denoise"]
     cy.denoiser = "OPENIMAGEDENOISE"
     cy.denoising_prefilter = "FAST"
+    cy.denoising_quality = render["denoise_quality"].upper()
+    direct = render["shading"] == "direct"
     cy.max_bounces = render["max_bounces"]
-    cy.diffuse_bounces = min(1, render["max_bounces"])
+    cy.diffuse_bounces = 0 if direct else min(1, render["max_bounces"])
     cy.glossy_bounces = render["max_bounces"]
     cy.transmission_bounces = 0
     cy.volume_bounces = 0
@@ -53,7 +55,7 @@ def init_worker(
     cy.caustics_refractive = False
     r = scene.render
     r.resolution_x, r.resolution_y, r.resolution_percentage = width, height, 100
-    r.use_persistent_data = True
+    r.use_persistent_data = render["persistent"]
     r.use_motion_blur = False
     if threads > 0:
         r.threads_mode = "FIXED"
@@ -70,7 +72,7 @@ def init_worker(
     img.file_format = "OPEN_EXR_MULTILAYER"
     img.color_depth = "16"  # the Z pass stays float32 in half-float EXRs
     img.exr_codec = "ZIP"
-    _STATE.update(textures_dir=textures_dir, scenes=0)
+    _STATE.update(textures_dir=textures_dir, shading=render["shading"], scenes=0)
 
 
 def frame_seed(scene_seed: int, frame: int) -> int:
@@ -95,7 +97,7 @@ def render_scene(spec: dict, out_dir: str, image_format: str, legacy: bool) -> d
     out.mkdir(parents=True, exist_ok=True)
     scene = bpy.context.scene
     build.clear_scene()
-    cam = build.build_scene(spec, _STATE["textures_dir"])
+    cam = build.build_scene(spec, _STATE["textures_dir"], _STATE["shading"])
     t_build = time.perf_counter() - t0
     local = formats.local_index(spec["index"])
     params = [cv2.IMWRITE_JPEG_QUALITY, 95]

@@ -1,0 +1,159 @@
+"""``stillbox-gen bench``: whole-process generation speed and image quality, side by side.
+
+For each resolution and render configuration it times a complete ``generate`` run (worker start-up,
+rendering, writing, indexing) into a temporary folder, then re-renders a few of those frames with
+``REFERENCE_SAMPLES`` samples (same shading, no denoiser) and reports the PSNR of the generated
+8-bit sRGB frames against them. Speed ratios are taken against the ``plain`` configuration, which
+is measured in the same invocation.
+"""
+
+from __future__ import annotations
+
+import csv
+import multiprocessing
+import tempfile
+import time
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from . import config, formats, generate
+from .scene import sample_scene
+
+REFERENCE_SAMPLES = 256
+# The issue's baseline: path-traced Principled BSDF, 8 samples, 1 bounce, no denoiser, and each
+# frame rendered as an independent still (no persistent scene data).
+PLAIN = {"shading": "path", "samples": 8, "denoise": False, "max_bounces": 1, "persistent": False}
+
+
+def configurations(names: list[str]) -> dict[str, dict]:
+    """Render-section overrides by name: the quality levels plus ``plain``."""
+    table = {**{q: dict(v) for q, v in config.QUALITY.items()}, "plain": dict(PLAIN)}
+    unknown = [n for n in names if n not in table]
+    if unknown:
+        raise config.ConfigError(
+            f"--configs: unknown {', '.join(unknown)} (choose from {', '.join(table)})"
+        )
+    return {n: table[n] for n in names}
+
+
+@dataclass
+class BenchRow:
+    res: int
+    config: str
+    shading: str
+    samples: int
+    denoise: bool
+    scenes: int
+    seconds: float
+    fps: float
+    psnr_db: float
+    speedup: float = float("nan")  # frames/s relative to "plain" at the same resolution
+
+
+def psnr(a: np.ndarray, b: np.ndarray) -> float:
+    """PSNR in dB of two uint8 images (peak 255); inf when identical."""
+    mse = np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2)
+    return float("inf") if mse == 0 else float(10 * np.log10(255.0**2 / mse))
+
+
+def reference_psnr(
+    cfg: config.DatasetConfig, root: Path, scenes: int, frames: list[int], workers: int
+) -> float:
+    """Mean PSNR of the dataset's frames against REFERENCE_SAMPLES-sample renders of them."""
+    ref_render = {**cfg.to_dict()["render"], "samples": REFERENCE_SAMPLES, "denoise": False}
+    c = cfg.camera
+    init = (ref_render, c.width, c.height, 0, cfg.materials.textures_dir)
+    values = []
+    ctx = multiprocessing.get_context("spawn")
+    with (
+        tempfile.TemporaryDirectory() as tmp,
+        ProcessPoolExecutor(workers, ctx, initializer=generate._worker_init, initargs=init) as pool,
+    ):
+        jobs = []
+        for k in range(scenes):
+            spec = sample_scene(cfg, k).to_dict()
+            spec["camera"]["cam2world"] = [spec["camera"]["cam2world"][f] for f in frames]
+            out = Path(tmp) / str(k)
+            jobs.append(
+                (k, out, pool.submit(generate._worker_render, spec, str(out), "png", False))
+            )
+        for k, out, job in jobs:
+            job.result()
+            local = formats.local_index(k)
+            for i, f in enumerate(frames):
+                ours = cv2.imread(str(root / formats.chunk_name(k) / formats.rgb_name(local, f)))
+                ref = cv2.imread(str(out / formats.rgb_name(local, i)))
+                values.append(psnr(ours, ref))
+    return float(np.mean(values))
+
+
+def run_bench(
+    resolutions: list[tuple[int, int]],
+    names: list[str],
+    workers: int,
+    psnr_scenes: int,
+    workdir: Path,
+    log=print,
+) -> list[BenchRow]:
+    """Measure every (resolution, configuration); ``resolutions`` holds (pixels, scenes) pairs."""
+    rows = []
+    for res, scenes in resolutions:
+        for name, render in configurations(names).items():
+            cfg = config.load_preset("stillbox")
+            cfg = config.replace(cfg, camera={"width": res, "height": res}, render=render)
+            out = workdir / f"{res}-{name}"
+            formats.remove_tree(out)
+            opts = generate.RunOptions(out=out, scenes=scenes, workers=workers, progress=False)
+            t0 = time.perf_counter()
+            generate.generate(cfg, opts)
+            seconds = time.perf_counter() - t0
+            frames = [0, cfg.camera.frames - 1]
+            quality = reference_psnr(cfg, out, min(psnr_scenes, scenes), frames, workers)
+            r = cfg.render
+            row = BenchRow(
+                res=res,
+                config=name,
+                shading=r.shading,
+                samples=r.samples,
+                denoise=r.denoise,
+                scenes=scenes,
+                seconds=seconds,
+                fps=scenes * cfg.camera.frames / seconds,
+                psnr_db=quality,
+            )
+            rows.append(row)
+            log(f"{res:>4} px  {name:<8} {row.fps:6.1f} frames/s  PSNR {quality:5.1f} dB")
+            formats.remove_tree(out)
+        base = next((r.fps for r in rows if r.res == res and r.config == "plain"), None)
+        for r in rows:
+            if r.res == res and base:
+                r.speedup = r.fps / base
+    return rows
+
+
+def markdown_table(rows: list[BenchRow]) -> str:
+    lines = [
+        "| px | config | shading | samples | denoiser | frames/s | vs plain | PSNR (dB) |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r.res} | {r.config} | {r.shading} | {r.samples} | {'OIDN' if r.denoise else '-'} "
+            f"| {r.fps:.1f} | {r.speedup:.2f}x | {r.psnr_db:.1f} |"
+        )
+    return "\n".join(lines)
+
+
+def write_csv(rows: list[BenchRow], path: Path) -> None:
+    fields = list(BenchRow.__dataclass_fields__)
+    tmp = path.with_name(path.name + ".tmp")
+    with tmp.open("w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=fields)
+        w.writeheader()
+        for r in rows:
+            w.writerow({k: getattr(r, k) for k in fields})
+    tmp.replace(path)
