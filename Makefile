@@ -5,7 +5,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: install test lint demo bench-gen clean
+.PHONY: install test lint demo bench-gen golden clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -35,6 +35,11 @@ demo: $(STAMP)
 # Whole-process generation speed and PSNR at 64/128/256 px, every quality level vs a plain config.
 bench-gen: $(STAMP)
 	$(BIN)/stillbox-gen bench --csv bench-gen.csv
+
+# Regenerate tests/golden/ after a deliberate change of outputs; review `git diff tests/golden`.
+golden: $(STAMP)
+	STILLBOX_UPDATE_GOLDEN=1 $(BIN)/python -m pytest -q tests/test_golden.py
+	git status --short tests/golden; git diff --stat tests/golden
 
 clean:
 	rm -rf $(VENV) data/demo-64 data/demo-64-preview.png runs/demo-depthnet .pytest_cache .ruff_cache

@@ -143,7 +143,8 @@ def markdown_table(rows: list[BenchRow]) -> str:
     for r in rows:
         lines.append(
             f"| {r.res} | {r.config} | {r.shading} | {r.samples} | {'OIDN' if r.denoise else '-'} "
-            f"| {r.fps:.1f} | {r.speedup:.2f}x | {r.psnr_db:.1f} |"
+            f"| {r.fps:.1f} | {'-' if r.speedup != r.speedup else f'{r.speedup:.2f}x'} "
+            f"| {r.psnr_db:.1f} |"
         )
     return "\n".join(lines)
 

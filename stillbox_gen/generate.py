@@ -21,7 +21,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from . import formats, manifest
-from .config import ConfigError, DatasetConfig
+from .config import ConfigError, DatasetConfig, denoise_quality
 from .scene import sample_scene
 
 DATASET_JSON = "dataset.json"
@@ -121,7 +121,7 @@ def prepare_output(out: Path, cfg: DatasetConfig, scenes: int) -> None:
 
 
 def dataset_info(cfg: DatasetConfig, scenes: int, complete: bool, **extra) -> dict:
-    r = cfg.render
+    r, w, h = cfg.render, cfg.camera.width, cfg.camera.height
     return {
         "format_version": formats.FORMAT_VERSION,
         "complete": complete,
@@ -137,7 +137,11 @@ def dataset_info(cfg: DatasetConfig, scenes: int, complete: bool, **extra) -> di
             "device": "CPU",
             "shading": r.shading,
             "samples": r.samples,
-            "denoiser": f"OPENIMAGEDENOISE ({r.denoise_quality})" if r.denoise else None,
+            "denoiser": (
+                f"OPENIMAGEDENOISE ({denoise_quality(r.denoise_quality, w, h)})"
+                if r.denoise
+                else None
+            ),
             "max_bounces": r.max_bounces,
             "view_transform": "Standard",
             "rgb": f"8-bit sRGB {r.image_format}",

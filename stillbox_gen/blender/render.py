@@ -16,7 +16,7 @@ import bpy
 import cv2
 import numpy as np
 
-from .. import formats
+from .. import config, formats
 from . import build
 
 _STATE: dict = {}
@@ -43,7 +43,7 @@ def init_worker(
     cy.use_denoising = render["denoise"]
     cy.denoiser = "OPENIMAGEDENOISE"
     cy.denoising_prefilter = "FAST"
-    cy.denoising_quality = render["denoise_quality"].upper()
+    cy.denoising_quality = config.denoise_quality(render["denoise_quality"], width, height).upper()
     direct = render["shading"] == "direct"
     cy.max_bounces = render["max_bounces"]
     cy.diffuse_bounces = 0 if direct else min(1, render["max_bounces"])
