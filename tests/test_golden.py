@@ -176,7 +176,8 @@ def test_fixed_seed_depthnet_smoke_training_loss_is_finite_and_falls(tmp_path):
     assert trained[0] == frozen[0]  # same first batch, same initial weights
     gain = np.mean(frozen[-8:]) - np.mean(trained[-8:])
     assert gain > 0, (
-        f"smoke training did not lower the loss: last 8 steps {np.mean(trained[-8:]):.3f} vs untrained {np.mean(frozen[-8:]):.3f}"
+        f"smoke training did not lower the loss: last 8 steps {np.mean(trained[-8:]):.3f}, "
+        f"untrained {np.mean(frozen[-8:]):.3f}"
     )
     run = tmp_path / "run"
     summary = json.loads((run / "summary.json").read_text())
