@@ -151,6 +151,14 @@ def parse_point(value: str) -> tuple[float, float]:
     help="I/N: render only scenes k with k % N == I (0 <= I < N), for job arrays writing to one "
     "folder; the last shard to finish indexes it (or run `stillbox-gen index OUT`).",
 )
+@click.option(
+    "--scene-timeout",
+    type=float,
+    default=600.0,
+    show_default=True,
+    help="Seconds without any finished scene before the workers are replaced and their "
+    "scenes retried (watchdog for hung workers).",
+)
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 def generate(**o) -> None:
     """Render a dataset (resumes when --out holds an unfinished one with the same parameters)."""
@@ -167,7 +175,10 @@ def generate(**o) -> None:
     res = f"{c.width}" if c.width == c.height else f"{c.width}x{c.height}"
     out = o["out"] or Path("data") / f"stillbox-{res}"
     shard = parse_shard(o["shard"]) if o["shard"] else (0, 1)
+    if o["scene_timeout"] <= 0:
+        raise ConfigError(f"--scene-timeout: must be positive (seconds), got {o['scene_timeout']}")
     opts = RunOptions(
+        scene_timeout=o["scene_timeout"],
         shard=shard,
         out=out,
         scenes=o["scenes"],

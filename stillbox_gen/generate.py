@@ -14,6 +14,7 @@ import multiprocessing
 import os
 import time
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
 from importlib import metadata as importlib_metadata
 from pathlib import Path
@@ -37,6 +38,8 @@ class RunOptions:
     recycle_after: int = 200  # scenes per worker process before it is replaced
     progress: bool = True
     shard: tuple[int, int] = (0, 1)  # (I, N): render only scene indices k with k % N == I
+    scene_timeout: float = 600.0  # seconds without any finished scene before workers are replaced
+    retries: int = 2  # extra attempts per scene after a crash, hang or render error
 
 
 @dataclass
@@ -49,6 +52,7 @@ class Summary:
     bytes: int = 0
     peak_rss_mb: float = 0.0
     split_counts: dict = field(default_factory=dict)
+    failures: list = field(default_factory=list)  # "scene k: why", one per failed attempt
 
     def lines(self) -> list[str]:
         fps = self.rendered_frames_per_second
@@ -60,6 +64,8 @@ class Summary:
             f"time        {self.seconds:.1f} s ({fps:.1f} frames/s rendered)",
             f"size        {self.bytes / 1e6:.1f} MB",
             f"peak RSS    {self.peak_rss_mb:.0f} MB per worker",
+            f"failures    {len(self.failures)} (retried)"
+            + "".join(f"\n              {f}" for f in self.failures[:10]),
         ]
 
     @property
@@ -192,12 +198,33 @@ def commit_scene(out: Path, spec: dict, cfg: DatasetConfig) -> dict:
     return record
 
 
+def _new_pool(cfg: DatasetConfig, opts: RunOptions) -> ProcessPoolExecutor:
+    c, mat = cfg.camera, cfg.materials
+    init_args = (cfg.to_dict()["render"], c.width, c.height, opts.threads, mat.textures_dir)
+    return ProcessPoolExecutor(
+        max_workers=opts.workers,
+        mp_context=multiprocessing.get_context("spawn"),
+        initializer=_worker_init,
+        initargs=init_args,
+        max_tasks_per_child=opts.recycle_after,
+    )
+
+
+def _kill_pool(pool: ProcessPoolExecutor) -> None:
+    """Stop a pool whose workers crashed or hang (kills the processes, waits for nothing)."""
+    for proc in list((getattr(pool, "_processes", None) or {}).values()):
+        if proc.is_alive():
+            proc.kill()
+    pool.shutdown(wait=False, cancel_futures=True)
+
+
 def render_pending(cfg: DatasetConfig, opts: RunOptions, todo: list[int], summary: Summary):
+    """Render ``todo`` in a pool; a crashed or hung worker (no scene finished for
+    ``opts.scene_timeout`` s) gets the pool replaced and its scenes retried, up to
+    ``opts.retries`` times per scene. Failures are counted in ``summary.failures``."""
     if not todo:
         return
-    c, mat = cfg.camera, cfg.materials
-    ctx = multiprocessing.get_context("spawn")
-    init_args = (cfg.to_dict()["render"], c.width, c.height, opts.threads, mat.textures_dir)
+    c = cfg.camera
     shard_total = len(range(opts.shard[0], opts.scenes, opts.shard[1]))
     bar = tqdm(
         total=shard_total,
@@ -207,55 +234,101 @@ def render_pending(cfg: DatasetConfig, opts: RunOptions, todo: list[int], summar
         dynamic_ncols=True,
     )
     t0 = time.perf_counter()
-    queue = iter(todo)
-    with ProcessPoolExecutor(
-        max_workers=opts.workers,
-        mp_context=ctx,
-        initializer=_worker_init,
-        initargs=init_args,
-        max_tasks_per_child=opts.recycle_after,
-    ) as pool:
-        running: dict = {}
+    queue = list(reversed(todo))  # pop() from the end gives ascending order
+    attempts: dict[int, int] = {}
+    pool = _new_pool(cfg, opts)
+    running: dict = {}
+    broken: list[int] = []  # set when submit() finds the pool broken
 
-        def submit_next() -> None:
-            index = next(queue, None)
-            if index is None:
-                return
-            spec = sample_scene(cfg, index).to_dict()
-            tmp = _tmp_dir(opts.out, index)
-            formats.remove_tree(tmp)
-            tmp.mkdir(parents=True)
+    def submit_next() -> None:
+        if not queue:
+            return
+        index = queue.pop()
+        spec = sample_scene(cfg, index).to_dict()
+        tmp = _tmp_dir(opts.out, index)
+        formats.remove_tree(tmp)
+        tmp.mkdir(parents=True)
+        try:
             fut = pool.submit(
                 _worker_render, spec, str(tmp), cfg.render.image_format, cfg.render.legacy
             )
-            running[fut] = spec
+        except BrokenProcessPool:  # a worker died since the last check: replaced below
+            queue.append(index)
+            broken.append(index)
+            return
+        running[fut] = spec
 
-        try:
-            for _ in range(2 * opts.workers):
-                submit_next()
-            while running:
-                done, _ = wait(running, return_when=FIRST_COMPLETED)
-                for fut in done:
-                    spec = running.pop(fut)
-                    try:
-                        stats = fut.result()
-                    except Exception as e:  # a scene that cannot render stops the run
-                        raise RuntimeError(
-                            f"scene {spec['index']} failed to render ({type(e).__name__}: {e}); "
-                            "finished scenes are kept, re-run the same command to resume"
-                        ) from e
-                    commit_scene(opts.out, spec, cfg)
-                    summary.rendered_now += 1
-                    summary.peak_rss_mb = max(summary.peak_rss_mb, stats["peak_rss_mb"])
-                    bar.update(1)
-                    elapsed = time.perf_counter() - t0
-                    bar.set_postfix(fps=f"{summary.rendered_now * c.frames / elapsed:.1f}")
+    def retry(specs: list[dict], why: str) -> None:
+        for spec in specs:
+            k = spec["index"]
+            attempts[k] = attempts.get(k, 0) + 1
+            summary.failures.append(f"scene {k}: {why}")
+            if attempts[k] > opts.retries:
+                raise RuntimeError(
+                    f"scene {k} failed {attempts[k]} times (last: {why}); finished scenes are "
+                    "kept, re-run the same command to resume"
+                )
+            queue.append(k)
+
+    try:
+        for _ in range(2 * opts.workers):
+            submit_next()
+        restarts = 0
+        while running or queue:
+            if not running:  # submit() found the pool broken with nothing in flight
+                restarts += 1
+                if restarts > opts.retries + 3:
+                    raise RuntimeError("worker processes keep dying before they take a scene")
+                _kill_pool(pool)
+                pool = _new_pool(cfg, opts)
+                broken.clear()
+                for _ in range(2 * opts.workers):
                     submit_next()
-        except BaseException:
-            pool.shutdown(wait=False, cancel_futures=True)
-            raise
-        finally:
-            bar.close()
+                continue
+            done, _ = wait(running, timeout=opts.scene_timeout, return_when=FIRST_COMPLETED)
+            if not done:  # watchdog: nothing finished in time, assume a hung worker
+                stuck = list(running.values())
+                running.clear()
+                _kill_pool(pool)
+                retry(stuck, f"no scene finished within {opts.scene_timeout:g} s (hung worker)")
+                pool = _new_pool(cfg, opts)
+                for _ in range(2 * opts.workers):
+                    submit_next()
+                continue
+            crashed = []
+            for fut in done:
+                spec = running.pop(fut)
+                try:
+                    stats = fut.result()
+                except BrokenProcessPool:
+                    crashed.append(spec)
+                    continue
+                except Exception as e:  # a scene that cannot render: retried, then fatal
+                    retry([spec], f"{type(e).__name__}: {e}")
+                    submit_next()
+                    continue
+                commit_scene(opts.out, spec, cfg)
+                summary.rendered_now += 1
+                summary.peak_rss_mb = max(summary.peak_rss_mb, stats["peak_rss_mb"])
+                bar.update(1)
+                elapsed = time.perf_counter() - t0
+                bar.set_postfix(fps=f"{summary.rendered_now * c.frames / elapsed:.1f}")
+                submit_next()
+            if crashed or broken:  # a broken pool fails every future: replace, retry
+                crashed += list(running.values())
+                running.clear()
+                broken.clear()
+                _kill_pool(pool)
+                retry(crashed, "worker process died")
+                pool = _new_pool(cfg, opts)
+                for _ in range(2 * opts.workers):
+                    submit_next()
+    except BaseException:
+        _kill_pool(pool)
+        raise
+    finally:
+        bar.close()
+    pool.shutdown(wait=True)
 
 
 def finalize(out: Path, cfg: DatasetConfig, scenes: int, run_info: dict) -> Summary:
@@ -313,6 +386,7 @@ def generate(cfg: DatasetConfig, opts: RunOptions, announce=lambda: None) -> Sum
         "workers": opts.workers,
         "threads_per_worker": opts.threads,
         "peak_rss_mb_per_worker": round(summary.peak_rss_mb, 1),
+        "failures": summary.failures,
     }
     if pending_indices(opts.out, opts.scenes):  # other shards still have work
         return dataclasses.replace(summary, seconds=seconds, scenes=opts.scenes)
@@ -322,6 +396,7 @@ def generate(cfg: DatasetConfig, opts: RunOptions, announce=lambda: None) -> Sum
         seconds,
         summary.peak_rss_mb,
     )
+    final.failures = summary.failures
     final.bytes = folder_size(opts.out)
     return final
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import multiprocessing
 import os
@@ -273,4 +274,47 @@ def test_two_shards_into_one_folder_equal_a_single_run(default_dataset, tmp_path
     assert [n for n in tree_single if tree_single[n] != tree_sharded[n]] == []
     assert json.loads((out / "dataset.json").read_text())["complete"] is True
     assert run_cli("index", out).returncode == 0  # re-indexing is harmless
+    assert run_cli("validate", out).returncode == 0
+
+
+def _worker_pids(parent: int) -> list[int]:
+    """Blender worker processes of a stillbox-gen run (spawned children, not the tracker)."""
+    out = subprocess.run(["pgrep", "-P", str(parent)], capture_output=True, text=True).stdout
+    pids = []
+    for pid in map(int, out.split()):
+        try:
+            cmd = Path(f"/proc/{pid}/cmdline").read_bytes().decode()
+        except OSError:
+            continue
+        if "spawn_main" in cmd and "resource_tracker" not in cmd:
+            pids.append(pid)
+    return pids
+
+
+@pytest.mark.parametrize("how", ["crash", "hang"])
+def test_crashed_or_hung_worker_is_replaced_and_its_scene_retried(default_dataset, tmp_path, how):
+    """SIGKILL (crash) or SIGSTOP (hang, caught by --scene-timeout) one worker mid-run: the run
+    finishes, reports the failure, and the scenes equal those of an undisturbed run."""
+    out = tmp_path / how
+    proc = subprocess.Popen(
+        [*CLI, "--res", "64", "--scenes", "10", "--seed", "3", "--workers", "2", "--quiet",
+         "--scene-timeout", "8", "--out", str(out)],
+        stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    deadline = time.time() + 300
+    while not list(out.glob("*/.records/*.json")) and time.time() < deadline:
+        time.sleep(0.02)
+    victims = _worker_pids(proc.pid)
+    assert victims, "no worker process found"
+    os.kill(victims[0], signal.SIGKILL if how == "crash" else signal.SIGSTOP)
+    _, stderr = proc.communicate(timeout=300)
+    if how == "hang":
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(victims[0], signal.SIGKILL)
+    assert proc.returncode == 0, stderr
+    reason = "worker process died" if how == "crash" else "hung worker"
+    assert reason in stderr and "failures    0" not in stderr, stderr
+    ref, got = _tree(default_dataset), _tree(out)
+    scene_files = [n for n in ref if "RGB_" in n or "depth_" in n or ".records" in n]
+    assert scene_files and all(ref[n] == got[n] for n in scene_files)
     assert run_cli("validate", out).returncode == 0
