@@ -26,6 +26,22 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+
+def check_frame_pair(x: torch.Tensor, name: str, in_channels: int, min_multiple: int) -> None:
+    """ValueError unless ``x`` is (B, in_channels, H, W) with H and W multiples of min_multiple."""
+    if x.dim() != 4 or x.shape[1] != in_channels:
+        raise ValueError(
+            f"{name} expects a (B, {in_channels}, H, W) tensor (two RGB frames stacked "
+            f"on the channel axis), got shape {tuple(x.shape)}"
+        )
+    h, w = x.shape[-2:]
+    if h % min_multiple or w % min_multiple:
+        raise ValueError(
+            f"{name} needs height and width that are multiples of {min_multiple} "
+            f"(six stride-2 stages), got {h}x{w}"
+        )
+
+
 FLOW_DIV = 20.0
 BN_EPS = 1e-3
 
@@ -120,17 +136,7 @@ class FlowNetS(nn.Module):
 
     def forward(self, x: torch.Tensor) -> list[torch.Tensor]:
         """(B, 6, H, W) → [(B, C, H/4, W/4), …, (B, C, H/64, W/64)], finest first."""
-        if x.dim() != 4 or x.shape[1] != self.in_channels:
-            raise ValueError(
-                f"FlowNetS expects a (B, {self.in_channels}, H, W) tensor (two RGB frames stacked "
-                f"on the channel axis), got shape {tuple(x.shape)}"
-            )
-        h, w = x.shape[-2:]
-        if h % self.min_multiple or w % self.min_multiple:
-            raise ValueError(
-                f"FlowNetS needs height and width that are multiples of {self.min_multiple}, "
-                f"got {h}x{w}"
-            )
+        check_frame_pair(x, "FlowNetS", self.in_channels, self.min_multiple)
         out_conv2 = self.conv2(self.conv1(x))
         out_conv3 = self.conv3_1(self.conv3(out_conv2))
         out_conv4 = self.conv4_1(self.conv4(out_conv3))

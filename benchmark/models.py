@@ -24,7 +24,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from .flownets import FlowNetS
+from .flownets import FlowNetS, check_frame_pair
 
 BN_EPS = 1e-3
 DEPTH_CLAMP_M = (10.0, 60.0)  # range of the optional output clamp, metres (as the public code)
@@ -137,17 +137,7 @@ class DepthNet(nn.Module):
 
     def forward(self, x: torch.Tensor) -> list[torch.Tensor]:
         """(B, 6, H, W) → [(B, 1, H/4, W/4), (B, 1, H/8, W/8), …, (B, 1, H/64, W/64)], metres."""
-        if x.dim() != 4 or x.shape[1] != self.in_channels:
-            raise ValueError(
-                f"DepthNet expects a (B, {self.in_channels}, H, W) tensor (two RGB frames stacked "
-                f"on the channel axis), got shape {tuple(x.shape)}"
-            )
-        h, w = x.shape[-2:]
-        if h % self.min_multiple or w % self.min_multiple:
-            raise ValueError(
-                f"DepthNet needs height and width that are multiples of {self.min_multiple} "
-                f"(six stride-2 stages), got {h}x{w}"
-            )
+        check_frame_pair(x, "DepthNet", self.in_channels, self.min_multiple)
         out_conv2 = self.conv2(self.conv1(x))
         out_conv3 = self.conv3_1(self.conv3(out_conv2))
         out_conv4 = self.conv4_1(self.conv4(out_conv3))

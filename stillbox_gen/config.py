@@ -23,8 +23,8 @@ PRIMITIVE_KINDS = ("cube", "sphere", "cone", "torus", "cylinder", "slab")
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp")
 IMAGE_FORMATS = ("png", "jpg")
 PATTERNS = ("noise", "voronoi", "wave", "magic", "checker", "brick", "gradient_stripes")
-# Smooth patterns converge at 1 sample + denoiser; the last three have hard edges that alias
-# (about 3-8 dB lower PSNR at 128 px, see `stillbox-gen bench`), so they are opt-in.
+# The last three have hard edges that alias at 1 sample (at 128 px, 1 sample + denoiser vs 256
+# samples: checker/brick/stripes 19-28 dB, noise/Voronoi 29-34 dB), so they are opt-in.
 SMOOTH_PATTERNS = PATTERNS[:4]
 
 
@@ -102,7 +102,7 @@ class LightConfig:
 SHADINGS = ("direct", "path")
 # --quality: render-section values (measured with `stillbox-gen bench`, see README).
 # OpenImageDenoise quality modes; "auto" = "fast" below 192x192 pixels (where per-frame costs
-# dominate), "balanced" from there (+1 dB at 256 px for 17 % more time; see README).
+# dominate), "balanced" from there (about +1 dB at 256 px for about 20 % more time).
 DENOISE_QUALITIES = ("auto", "fast", "balanced", "high")
 QUALITY = {
     "fast": {"shading": "direct", "samples": 1, "denoise": False, "denoise_quality": "fast"},
@@ -204,8 +204,19 @@ def load_preset(name_or_path: str) -> DatasetConfig:
         for k in value:
             if k not in names:
                 raise ConfigError(f"{origin}: unknown key '{key}.{k}'")
-        sections[key] = cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in value.items()})
+        sections[key] = _section(cls, value)
     return DatasetConfig(preset=name, **sections)
+
+
+def _section(cls, values: dict):
+    """A config section from TOML/JSON values (lists become tuples)."""
+    return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in values.items()})
+
+
+def from_dict(d: dict) -> DatasetConfig:
+    """Inverse of :meth:`DatasetConfig.to_dict` (e.g. the ``config`` of dataset.json)."""
+    sections = {name: _section(cls, d[name]) for name, cls in SECTIONS.items()}
+    return DatasetConfig(preset=d["preset"], seed=d["seed"], split=tuple(d["split"]), **sections)
 
 
 def replace(cfg: DatasetConfig, **sections: dict) -> DatasetConfig:

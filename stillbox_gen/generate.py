@@ -21,7 +21,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from . import formats, manifest
+from . import config, formats, manifest
 from .config import ConfigError, DatasetConfig, denoise_quality
 from .scene import sample_scene
 
@@ -407,7 +407,7 @@ def index_dataset(out: Path) -> Summary:
     if not info_path.is_file():
         raise ConfigError(f"DATASET: '{out}' has no {DATASET_JSON} (not a stillbox-gen dataset)")
     info = json.loads(info_path.read_text())
-    cfg = config_from_dict(info["config"])
+    cfg = config.from_dict(info["config"])
     if cfg.fingerprint() != info["fingerprint"]:
         raise ConfigError(f"DATASET: '{info_path}' config does not match its fingerprint")
     missing = pending_indices(out, info["scenes"])
@@ -418,14 +418,3 @@ def index_dataset(out: Path) -> Summary:
             "run the missing shards first"
         )
     return finalize(out, cfg, info["scenes"], info.get("run", {"indexed_from": "shards"}))
-
-
-def config_from_dict(d: dict) -> DatasetConfig:
-    """Inverse of DatasetConfig.to_dict (lists back to tuples)."""
-    from . import config as c
-
-    def section(cls, values: dict):
-        return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in values.items()})
-
-    kwargs = {name: section(cls, d[name]) for name, cls in c.SECTIONS.items()}
-    return DatasetConfig(preset=d["preset"], seed=d["seed"], split=tuple(d["split"]), **kwargs)
