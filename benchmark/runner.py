@@ -68,7 +68,9 @@ def score_checkpoint(
     split, scenes, dataset = eval_split(data, split, shift, progress)
     method = Method(models.MODELS[name].output, model, ck["nominal_displacement"])
     t0 = time.perf_counter()
-    result = evaluate(method, dataset, dev, batch_size, _predictions_dir(out, save_predictions))
+    result = evaluate(
+        method, dataset, dev, batch_size, predictions_dir=_predictions_dir(out, save_predictions)
+    )
     info = {
         "dataset": str(data),
         "split": split,
@@ -117,7 +119,9 @@ def score_baseline(
     (out / "config.json").write_text(json.dumps(config, indent=2) + "\n")
     (out / "environment.json").write_text(json.dumps(environment(dev), indent=2) + "\n")
     t0 = time.perf_counter()
-    result = evaluate(method, dataset, dev, batch_size, _predictions_dir(out, save_predictions))
+    result = evaluate(
+        method, dataset, dev, batch_size, predictions_dir=_predictions_dir(out, save_predictions)
+    )
     info.update(split=split, scenes=len(scenes), shift=shift)
     info["eval_seconds"] = round(time.perf_counter() - t0, 2)
     summary = write_run_report(out, name, result, info)
