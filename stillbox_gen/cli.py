@@ -148,8 +148,9 @@ def parse_point(value: str) -> tuple[float, float]:
 )
 @click.option(
     "--shard",
-    help="I/N: render only scenes k with k % N == I (0 <= I < N), for job arrays writing to one "
-    "folder; the last shard to finish indexes it (or run `stillbox-gen index OUT`).",
+    help="I/N: render only scenes k with k % N == I (0 <= I < N), for job arrays. Into one "
+    "shared folder: the last shard to finish indexes it (or `stillbox-gen index OUT`); into "
+    "separate folders: join them with `stillbox-gen merge OUT FOLDERS...`.",
 )
 @click.option(
     "--scene-timeout",
@@ -158,6 +159,19 @@ def parse_point(value: str) -> tuple[float, float]:
     show_default=True,
     help="Seconds without any finished scene before the workers are replaced and their "
     "scenes retried (watchdog for hung workers).",
+)
+@click.option(
+    "--backend",
+    type=click.Choice(["local", "ray"]),
+    default="local",
+    show_default=True,
+    help="local: Blender processes on this machine; ray: Ray actors on a Ray cluster "
+    "(pip install 'stillbox-gen[ray]'), each using --threads CPUs (1 when 0).",
+)
+@click.option(
+    "--ray-address",
+    help="Ray cluster to join (auto, HOST:PORT or ray://HOST:PORT) with --backend ray.  "
+    "[default: start a local Ray instance]",
 )
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 def generate(**o) -> None:
@@ -177,7 +191,15 @@ def generate(**o) -> None:
     shard = parse_shard(o["shard"]) if o["shard"] else (0, 1)
     if o["scene_timeout"] <= 0:
         raise ConfigError(f"--scene-timeout: must be positive (seconds), got {o['scene_timeout']}")
+    if o["ray_address"] and o["backend"] != "ray":
+        raise ConfigError("--ray-address: only with --backend ray")
+    if o["backend"] == "ray":
+        from .ray_pool import require_ray
+
+        require_ray()
     opts = RunOptions(
+        backend=o["backend"],
+        ray_address=o["ray_address"],
         scene_timeout=o["scene_timeout"],
         shard=shard,
         out=out,
@@ -221,6 +243,21 @@ def index(dataset: Path) -> None:
 
     summary = index_dataset(dataset)
     click.echo(f"{dataset}: indexed {summary.scenes} scenes, {summary.frames} frames")
+
+
+@cli.command()
+@click.argument("out", type=click.Path(path_type=Path))
+@click.argument("sources", nargs=-1, required=True, type=click.Path(path_type=Path))
+def merge(out: Path, sources: tuple[Path, ...]) -> None:
+    """Join datasets rendered by --shard I/N into separate folders (SOURCES) into OUT, indexed;
+    the files equal a single run with the same seed. OUT may be one of the SOURCES."""
+    from .merge import merge_datasets
+
+    copied, summary = merge_datasets(out, list(sources))
+    click.echo(
+        f"{out}: merged {copied} scenes from {len(sources)} folders; "
+        f"indexed {summary.scenes} scenes, {summary.frames} frames"
+    )
 
 
 def build_config(o: dict) -> config.DatasetConfig:

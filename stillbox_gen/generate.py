@@ -13,7 +13,7 @@ import json
 import multiprocessing
 import os
 import time
-from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
 from importlib import metadata as importlib_metadata
@@ -40,6 +40,8 @@ class RunOptions:
     shard: tuple[int, int] = (0, 1)  # (I, N): render only scene indices k with k % N == I
     scene_timeout: float = 600.0  # seconds without any finished scene before workers are replaced
     retries: int = 2  # extra attempts per scene after a crash, hang or render error
+    backend: str = "local"  # "local" (process pool) or "ray" (actors on a Ray cluster)
+    ray_address: str | None = None  # Ray cluster to join; None starts a local instance
 
 
 @dataclass
@@ -111,7 +113,9 @@ def prepare_output(out: Path, cfg: DatasetConfig, scenes: int) -> None:
             raise ConfigError(
                 f"--scenes: {scenes} is fewer than the {old['scenes']} scenes already in '{out}'"
             )
-    elif out.is_dir() and any(out.iterdir()):
+    elif out.is_dir() and any(not _is_own_temporary(p) for p in out.iterdir()):
+        if existing.is_file():  # another shard's dataset.json appeared meanwhile: check it
+            return prepare_output(out, cfg, scenes)
         raise ConfigError(
             f"--out: '{out}' is a non-empty folder that is not a stillbox-gen dataset"
         )
@@ -124,6 +128,11 @@ def prepare_output(out: Path, cfg: DatasetConfig, scenes: int) -> None:
     state = dataset_info(cfg, scenes, complete=False)
     formats.atomic_write_json(existing, state, indent=2)
     (out / MANIFEST).unlink(missing_ok=True)
+
+
+def _is_own_temporary(path: Path) -> bool:
+    """A dataset.json being written by another shard that started into the same new folder."""
+    return path.name.startswith(f".{DATASET_JSON}.tmp-")
 
 
 def dataset_info(cfg: DatasetConfig, scenes: int, complete: bool, **extra) -> dict:
@@ -198,24 +207,55 @@ def commit_scene(out: Path, spec: dict, cfg: DatasetConfig) -> dict:
     return record
 
 
-def _new_pool(cfg: DatasetConfig, opts: RunOptions) -> ProcessPoolExecutor:
+class LocalPool:
+    """Blender worker processes on this machine (spawned, each replaced after
+    ``opts.recycle_after`` scenes); workers write a scene's files into its temporary folder."""
+
+    died_errors: tuple[type[BaseException], ...] = (BrokenProcessPool,)
+
+    def __init__(self, cfg: DatasetConfig, opts: RunOptions) -> None:
+        self._pool = ProcessPoolExecutor(
+            max_workers=opts.workers,
+            mp_context=multiprocessing.get_context("spawn"),
+            initializer=_worker_init,
+            initargs=worker_init_args(cfg, opts),
+            max_tasks_per_child=opts.recycle_after,
+        )
+
+    def submit(self, spec: dict, tmp_dir: Path, image_format: str, legacy: bool) -> Future:
+        return self._pool.submit(_worker_render, spec, str(tmp_dir), image_format, legacy)
+
+    def kill(self) -> None:
+        """Stop workers that crashed or hang (kills the processes, waits for nothing)."""
+        for proc in list((getattr(self._pool, "_processes", None) or {}).values()):
+            if proc.is_alive():
+                proc.kill()
+        self._pool.shutdown(wait=False, cancel_futures=True)
+
+    def shutdown(self) -> None:
+        self._pool.shutdown(wait=True)
+
+
+def worker_init_args(cfg: DatasetConfig, opts: RunOptions) -> tuple:
+    """Arguments of blender.render.init_worker for this dataset."""
     c, mat = cfg.camera, cfg.materials
-    init_args = (cfg.to_dict()["render"], c.width, c.height, opts.threads, mat.textures_dir)
-    return ProcessPoolExecutor(
-        max_workers=opts.workers,
-        mp_context=multiprocessing.get_context("spawn"),
-        initializer=_worker_init,
-        initargs=init_args,
-        max_tasks_per_child=opts.recycle_after,
-    )
+    return (cfg.to_dict()["render"], c.width, c.height, opts.threads, mat.textures_dir)
 
 
-def _kill_pool(pool: ProcessPoolExecutor) -> None:
-    """Stop a pool whose workers crashed or hang (kills the processes, waits for nothing)."""
-    for proc in list((getattr(pool, "_processes", None) or {}).values()):
-        if proc.is_alive():
-            proc.kill()
-    pool.shutdown(wait=False, cancel_futures=True)
+def new_pool(cfg: DatasetConfig, opts: RunOptions):
+    """The worker pool of ``opts.backend``: LocalPool, or ray_pool.RayPool."""
+    if opts.backend == "ray":
+        from .ray_pool import RayPool
+
+        return RayPool(cfg, opts)
+    return LocalPool(cfg, opts)
+
+
+def _write_returned_files(tmp: Path, result: dict) -> None:
+    """Remote workers return a scene's files as {name: bytes}; write them where a local
+    worker would have."""
+    for name, data in sorted(result.pop("files", {}).items()):
+        (tmp / name).write_bytes(data)
 
 
 def render_pending(cfg: DatasetConfig, opts: RunOptions, todo: list[int], summary: Summary):
@@ -236,7 +276,7 @@ def render_pending(cfg: DatasetConfig, opts: RunOptions, todo: list[int], summar
     t0 = time.perf_counter()
     queue = list(reversed(todo))  # pop() from the end gives ascending order
     attempts: dict[int, int] = {}
-    pool = _new_pool(cfg, opts)
+    pool = new_pool(cfg, opts)
     running: dict = {}
     broken: list[int] = []  # set when submit() finds the pool broken
 
@@ -249,10 +289,8 @@ def render_pending(cfg: DatasetConfig, opts: RunOptions, todo: list[int], summar
         formats.remove_tree(tmp)
         tmp.mkdir(parents=True)
         try:
-            fut = pool.submit(
-                _worker_render, spec, str(tmp), cfg.render.image_format, cfg.render.legacy
-            )
-        except BrokenProcessPool:  # a worker died since the last check: replaced below
+            fut = pool.submit(spec, tmp, cfg.render.image_format, cfg.render.legacy)
+        except pool.died_errors:  # a worker died since the last check: replaced below
             queue.append(index)
             broken.append(index)
             return
@@ -279,8 +317,8 @@ def render_pending(cfg: DatasetConfig, opts: RunOptions, todo: list[int], summar
                 restarts += 1
                 if restarts > opts.retries + 3:
                     raise RuntimeError("worker processes keep dying before they take a scene")
-                _kill_pool(pool)
-                pool = _new_pool(cfg, opts)
+                pool.kill()
+                pool = new_pool(cfg, opts)
                 broken.clear()
                 for _ in range(2 * opts.workers):
                     submit_next()
@@ -289,9 +327,9 @@ def render_pending(cfg: DatasetConfig, opts: RunOptions, todo: list[int], summar
             if not done:  # watchdog: nothing finished in time, assume a hung worker
                 stuck = list(running.values())
                 running.clear()
-                _kill_pool(pool)
+                pool.kill()
                 retry(stuck, f"no scene finished within {opts.scene_timeout:g} s (hung worker)")
-                pool = _new_pool(cfg, opts)
+                pool = new_pool(cfg, opts)
                 for _ in range(2 * opts.workers):
                     submit_next()
                 continue
@@ -300,13 +338,14 @@ def render_pending(cfg: DatasetConfig, opts: RunOptions, todo: list[int], summar
                 spec = running.pop(fut)
                 try:
                     stats = fut.result()
-                except BrokenProcessPool:
+                except pool.died_errors:
                     crashed.append(spec)
                     continue
                 except Exception as e:  # a scene that cannot render: retried, then fatal
                     retry([spec], f"{type(e).__name__}: {e}")
                     submit_next()
                     continue
+                _write_returned_files(_tmp_dir(opts.out, spec["index"]), stats)
                 commit_scene(opts.out, spec, cfg)
                 summary.rendered_now += 1
                 summary.peak_rss_mb = max(summary.peak_rss_mb, stats["peak_rss_mb"])
@@ -318,17 +357,17 @@ def render_pending(cfg: DatasetConfig, opts: RunOptions, todo: list[int], summar
                 crashed += list(running.values())
                 running.clear()
                 broken.clear()
-                _kill_pool(pool)
+                pool.kill()
                 retry(crashed, "worker process died")
-                pool = _new_pool(cfg, opts)
+                pool = new_pool(cfg, opts)
                 for _ in range(2 * opts.workers):
                     submit_next()
     except BaseException:
-        _kill_pool(pool)
+        pool.kill()
         raise
     finally:
         bar.close()
-    pool.shutdown(wait=True)
+    pool.shutdown()
 
 
 def finalize(out: Path, cfg: DatasetConfig, scenes: int, run_info: dict) -> Summary:
@@ -378,11 +417,18 @@ def generate(cfg: DatasetConfig, opts: RunOptions, announce=lambda: None) -> Sum
     todo = pending_indices(opts.out, opts.scenes, opts.shard)
     summary = Summary()
     t0 = time.perf_counter()
-    render_pending(cfg, opts, todo, summary)
+    if opts.backend == "ray" and todo:
+        from .ray_pool import ray_session
+
+        with ray_session(opts.ray_address):
+            render_pending(cfg, opts, todo, summary)
+    else:
+        render_pending(cfg, opts, todo, summary)
     seconds = time.perf_counter() - t0
     run_info = {
         "seconds": round(seconds, 3),
         "scenes_rendered": summary.rendered_now,
+        "backend": opts.backend,
         "workers": opts.workers,
         "threads_per_worker": opts.threads,
         "peak_rss_mb_per_worker": round(summary.peak_rss_mb, 1),

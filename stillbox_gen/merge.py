@@ -1,0 +1,101 @@
+"""``stillbox-gen merge OUT SRC...``: join datasets rendered by ``--shard I/N`` into separate
+folders (one per job, e.g. on machines without a shared file system) into one indexed dataset.
+
+Every source must hold the same parameters (same ``fingerprint`` and ``scenes``). Each complete
+scene of each source (its ``.records`` file exists) is linked, or copied across file systems, into
+OUT under a temporary name and renamed; its record is written last, as in a generation run, so an
+interrupted merge resumes. OUT is then indexed: the result equals a single run with the same seed.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from pathlib import Path
+
+from . import formats
+from .config import ConfigError
+from .generate import DATASET_JSON, index_dataset, pending_indices
+
+
+def _info(folder: Path) -> dict:
+    path = folder / DATASET_JSON
+    if not path.is_file():
+        raise ConfigError(f"SOURCES: '{folder}' has no {DATASET_JSON} (not a stillbox-gen dataset)")
+    try:
+        return json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as e:
+        raise ConfigError(f"SOURCES: cannot read '{path}' ({e})") from None
+
+
+def scene_files(record: dict) -> list[str]:
+    """Every file name of a scene in its chunk folder (frames, depth, legacy copies)."""
+    names = [*record["rgb"], *record["depth_exr"], *record["imgs"], *record["depth"]]
+    return sorted(set(names))
+
+
+def _place(src: Path, dst: Path) -> None:
+    """Hard-link (same file system) or copy ``src`` to a temporary name, then rename to ``dst``."""
+    tmp = dst.with_name(f".{dst.name}.merge-{os.getpid()}")
+    tmp.unlink(missing_ok=True)
+    try:
+        os.link(src, tmp)
+    except OSError:
+        shutil.copyfile(src, tmp)
+    os.replace(tmp, dst)
+
+
+def merge_datasets(out: Path, sources: list[Path]) -> tuple[int, object]:
+    """Copy the complete scenes of ``sources`` into ``out`` and index it.
+
+    Returns (scenes copied now, generate.Summary). Raises ConfigError (naming the folder) when the
+    sources disagree, OUT holds another dataset, or scenes are missing from every source.
+    """
+    if not sources:
+        raise ConfigError("SOURCES: give at least one dataset folder to merge")
+    infos = [_info(s) for s in sources]
+    first = infos[0]
+    for src, info in zip(sources, infos, strict=True):
+        if info.get("fingerprint") != first.get("fingerprint"):
+            raise ConfigError(
+                f"SOURCES: '{src}' was made with other parameters than '{sources[0]}' "
+                f"(seed {info.get('seed')} vs {first.get('seed')}, preset {info.get('preset')!r})"
+            )
+        if info.get("scenes") != first.get("scenes"):
+            raise ConfigError(
+                f"SOURCES: '{src}' has --scenes {info.get('scenes')}, "
+                f"'{sources[0]}' has {first.get('scenes')}"
+            )
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"--out: '{out}' exists and is a file, not a folder")
+    if (out / DATASET_JSON).is_file():
+        if _info(out).get("fingerprint") != first["fingerprint"]:
+            raise ConfigError(f"--out: '{out}' holds a dataset made with other parameters")
+    elif out.is_dir() and any(out.iterdir()):
+        raise ConfigError(
+            f"--out: '{out}' is a non-empty folder that is not a stillbox-gen dataset"
+        )
+    out.mkdir(parents=True, exist_ok=True)
+    state = {**first, "complete": False, "run": {"merged_from": [str(s) for s in sources]}}
+    formats.atomic_write_json(out / DATASET_JSON, state, indent=2)
+    (out / "manifest.parquet").unlink(missing_ok=True)
+
+    copied = 0
+    for k in pending_indices(out, first["scenes"]):
+        src = next((s for s in sources if formats.record_path(s, k).is_file()), None)
+        if src is None:  # index_dataset below names every missing scene
+            continue
+        rec_src = formats.record_path(src, k)
+        chunk = formats.chunk_name(k)
+        try:
+            record = json.loads(rec_src.read_text())
+            (out / chunk).mkdir(exist_ok=True)
+            for name in scene_files(record):
+                _place(src / chunk / name, out / chunk / name)
+            formats.record_path(out, k).parent.mkdir(exist_ok=True)
+            _place(rec_src, formats.record_path(out, k))
+        except (OSError, json.JSONDecodeError, KeyError) as e:
+            raise ConfigError(f"SOURCES: scene {k} in '{src}' is unreadable ({e})") from None
+        copied += 1
+    return copied, index_dataset(out)
