@@ -96,6 +96,9 @@ def render_scene(spec: dict, out_dir: str, image_format: str, legacy: bool) -> d
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     scene = bpy.context.scene
+    if scene.render.use_persistent_data:  # free the previous scene's cached render data, which
+        scene.render.use_persistent_data = False  # otherwise grows RSS ~0.27 MB per scene
+        scene.render.use_persistent_data = True
     build.clear_scene()
     cam = build.build_scene(spec, _STATE["textures_dir"], _STATE["shading"])
     t_build = time.perf_counter() - t0
