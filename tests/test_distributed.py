@@ -53,6 +53,10 @@ def test_shards_in_separate_folders_merge_into_a_single_run(default_dataset, tmp
     assert info["complete"] is True and info["run"]["merged_from"] == [str(a), str(b)]
     assert run_cli("validate", merged).returncode == 0
 
+    run_cli("merge", a, a, b)  # into one of the parts
+    got = _tree(a)
+    assert sorted(ref) == sorted(got) and [n for n in ref if ref[n] != got[n]] == []
+
 
 def test_shards_started_together_into_a_new_folder_equal_a_single_run(default_dataset, tmp_path):
     """Both shards create the folder and write dataset.json at once; neither may refuse it."""
