@@ -181,8 +181,18 @@ def _depthnet_defaults() -> dict:
 
 
 def _flow_defaults() -> dict:
-    """DepthNet's recipe; the loss is computed in flow / 20, as the public FlowNetS code."""
-    return {**_depthnet_defaults(), "loss_scale": 1.0 / 20.0}
+    """The public FlowNetS flow recipe: Adam (lr 1e-4, betas 0.9/0.999, weight decay 4e-4), loss
+    in flow / 20; batch, epochs and lr steps as DepthNet. DepthNet's SGD at lr 0.01 did not learn
+    flow here (64 px, 2 epochs: predictions uncorrelated with the truth, EPE 10.7 px against
+    3.1 px for zero flow)."""
+    return {
+        **_depthnet_defaults(),
+        "optimizer": "adam",
+        "lr": 1e-4,
+        "momentum": 0.9,
+        "beta2": 0.999,
+        "loss_scale": 1.0 / 20.0,
+    }
 
 
 #: what a method outputs: a depth network, a flow network (depth by geometry), or no network

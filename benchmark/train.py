@@ -41,8 +41,10 @@ class TrainConfig:
     max_steps: int | None = None  # stop after this many optimiser steps (smoke runs)
     batch_size: int = 256
     lr: float = 1e-2
-    momentum: float = 0.9
-    dampening: float = 0.9
+    optimizer: str = "sgd"  # "sgd" (DepthNet recipe) or "adam" (public FlowNetS flow recipe)
+    momentum: float = 0.9  # SGD momentum, or Adam's beta1
+    dampening: float = 0.9  # SGD only
+    beta2: float = 0.999  # Adam only
     weight_decay: float = 4e-4
     milestones: tuple[float, ...] = (19 / 55, 30 / 55, 44 / 55, 53 / 55)  # fractions of epochs
     gamma: float = 0.3
@@ -197,13 +199,21 @@ class Trainer:
         if self.world > 1:
             ids = [self.device.index] if self.device.type == "cuda" else None
             self.net = torch.nn.parallel.DistributedDataParallel(self.model, device_ids=ids)
-        self.opt = torch.optim.SGD(
-            self.model.parameters(),
-            lr=cfg.lr,
-            momentum=cfg.momentum,
-            dampening=cfg.dampening,
-            weight_decay=cfg.weight_decay,
-        )
+        if cfg.optimizer == "adam":
+            self.opt = torch.optim.Adam(
+                self.model.parameters(),
+                lr=cfg.lr,
+                betas=(cfg.momentum, cfg.beta2),
+                weight_decay=cfg.weight_decay,
+            )
+        else:
+            self.opt = torch.optim.SGD(
+                self.model.parameters(),
+                lr=cfg.lr,
+                momentum=cfg.momentum,
+                dampening=cfg.dampening,
+                weight_decay=cfg.weight_decay,
+            )
         miles = sorted({max(1, round(m * cfg.epochs)) for m in cfg.milestones})
         self.sched = torch.optim.lr_scheduler.MultiStepLR(self.opt, miles, cfg.gamma)
         self.state = {"epoch": 0, "step_in_epoch": 0, "global_step": 0, "best": math.inf}
