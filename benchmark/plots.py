@@ -138,8 +138,10 @@ def error_vs_foe_distance(
             pixel distance to the FOE and ``|pred − gt|`` in metres. Infinite distances (lateral
             motion, FOE at infinity) and non-finite errors are ignored.
         path: output PNG.
-        bins: number of equal-width distance bins over ``[0, largest finite distance]``, shared
-            by all methods.
+        bins: number of log-spaced distance bins from 0.5 px to the largest finite distance
+            (plus one bin [0, 0.5) px), shared by all methods; the x axis is logarithmic above
+            1 px, so the few pixels near the FOE are not squeezed against the axis by the
+            thousands-of-pixels distances of nearly lateral motions.
     """
     data = {}
     for name, (dist, err) in curves.items():
@@ -149,8 +151,8 @@ def error_vs_foe_distance(
         keep = np.isfinite(dist) & np.isfinite(err)
         data[name] = (dist[keep], err[keep])
     finite_max = [d.max() for d, _ in data.values() if d.size]
-    hi = max(finite_max) if finite_max and max(finite_max) > 0 else 1.0
-    edges = np.linspace(0.0, hi, bins + 1)
+    hi = max(max(finite_max) if finite_max else 1.0, 1.0)
+    edges = np.concatenate([[0.0], np.geomspace(0.5, hi, bins)])
 
     fig = Figure(figsize=(6, 4))
     ax = fig.add_subplot()
@@ -159,8 +161,9 @@ def error_vs_foe_distance(
         _no_data(ax)
     else:
         ax.legend()
+    ax.set_xscale("symlog", linthresh=1.0)
     ax.set_xlim(0, hi)
-    ax.set_xlabel("distance to the focus of expansion (px)")
+    ax.set_xlabel("distance to the focus of expansion (px, log scale above 1)")
     ax.set_ylabel("absolute error |θ̃ − θ| (m)")
     ax.set_title(f"Error vs distance to FOE ({QUARTILE_NOTE})")
     ax.grid(alpha=0.3)
