@@ -124,7 +124,7 @@ class FlowNetS(nn.Module):
         transposed-conv weights, zero biases, BatchNorm weight 1 / bias 0. Except: the flow
         head's ``predict_flow*`` convs start at zero, so an untrained network predicts zero flow
         (with kaiming weights it predicts ~10-20 px of random flow, and the short CPU trainings
-        here ended worse than zero flow: EPE 9-11 px against 3.1 px)."""
+        here ended worse than zero flow: EPE 9-11 px against 3.0 px)."""
         for name, m in self.named_modules():
             if isinstance(m, nn.Conv2d | nn.ConvTranspose2d):
                 if self.output == "flow" and name.startswith("predict_flow"):

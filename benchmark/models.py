@@ -184,7 +184,7 @@ def _flow_defaults() -> dict:
     """The public FlowNetS flow recipe: Adam (lr 1e-4, betas 0.9/0.999, weight decay 4e-4), loss
     in flow / 20; batch, epochs and lr steps as DepthNet. DepthNet's SGD at lr 0.01 did not learn
     flow here (64 px, 2 epochs: predictions uncorrelated with the truth, EPE 10.7 px against
-    3.1 px for zero flow)."""
+    3.0 px for zero flow)."""
     return {
         **_depthnet_defaults(),
         "optimizer": "adam",
