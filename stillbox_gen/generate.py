@@ -447,8 +447,9 @@ def generate(cfg: DatasetConfig, opts: RunOptions, announce=lambda: None) -> Sum
     return final
 
 
-def index_dataset(out: Path) -> Summary:
-    """Write metadata, manifest and a complete dataset.json for a folder filled by shards."""
+def index_dataset(out: Path, run_info: dict | None = None) -> Summary:
+    """Write metadata, manifest and a complete dataset.json for a folder filled by shards;
+    ``run_info`` replaces dataset.json's ``run`` block when given."""
     info_path = out / DATASET_JSON
     if not info_path.is_file():
         raise ConfigError(f"DATASET: '{out}' has no {DATASET_JSON} (not a stillbox-gen dataset)")
@@ -463,4 +464,5 @@ def index_dataset(out: Path) -> Summary:
             f"DATASET: '{out}' lacks {len(missing)} of {info['scenes']} scenes ({shown}); "
             "run the missing shards first"
         )
-    return finalize(out, cfg, info["scenes"], info.get("run", {"indexed_from": "shards"}))
+    run_info = run_info or info.get("run", {"indexed_from": "shards"})
+    return finalize(out, cfg, info["scenes"], run_info)

@@ -14,9 +14,9 @@ import os
 import shutil
 from pathlib import Path
 
-from . import formats
+from . import config, formats
 from .config import ConfigError
-from .generate import DATASET_JSON, index_dataset, pending_indices
+from .generate import DATASET_JSON, index_dataset, pending_indices, prepare_output
 
 
 def _info(folder: Path) -> dict:
@@ -67,19 +67,8 @@ def merge_datasets(out: Path, sources: list[Path]) -> tuple[int, object]:
                 f"SOURCES: '{src}' has --scenes {info.get('scenes')}, "
                 f"'{sources[0]}' has {first.get('scenes')}"
             )
-    if out.exists() and not out.is_dir():
-        raise ConfigError(f"--out: '{out}' exists and is a file, not a folder")
-    if (out / DATASET_JSON).is_file():
-        if _info(out).get("fingerprint") != first["fingerprint"]:
-            raise ConfigError(f"--out: '{out}' holds a dataset made with other parameters")
-    elif out.is_dir() and any(out.iterdir()):
-        raise ConfigError(
-            f"--out: '{out}' is a non-empty folder that is not a stillbox-gen dataset"
-        )
-    out.mkdir(parents=True, exist_ok=True)
-    state = {**first, "complete": False, "run": {"merged_from": [str(s) for s in sources]}}
-    formats.atomic_write_json(out / DATASET_JSON, state, indent=2)
-    (out / "manifest.parquet").unlink(missing_ok=True)
+    # the same checks of OUT, and the same "incomplete" mark, as a generation run
+    prepare_output(out, config.from_dict(first["config"]), first["scenes"])
 
     copied = 0
     for k in pending_indices(out, first["scenes"]):
@@ -98,4 +87,4 @@ def merge_datasets(out: Path, sources: list[Path]) -> tuple[int, object]:
         except (OSError, json.JSONDecodeError, KeyError) as e:
             raise ConfigError(f"SOURCES: scene {k} in '{src}' is unreadable ({e})") from None
         copied += 1
-    return copied, index_dataset(out)
+    return copied, index_dataset(out, {"merged_from": [str(s) for s in sources]})

@@ -107,7 +107,7 @@ class RayPool:
             num_cpus=threads,
             max_restarts=0,
             # Ray starts workers at niceness 15; at that priority any other load on a node
-            # (measured: a training job) slows rendering 20x. Render like local workers.
+            # (measured: a training job) slowed rendering 17x. Render like local workers.
             runtime_env={"env_vars": {"RAY_worker_niceness": "0"}},
         )
         self._init_args = worker_init_args(cfg, dataclasses.replace(opts, threads=threads))

@@ -22,6 +22,16 @@ def run_cli(*args: str, check: bool = True, timeout: float = 600) -> subprocess.
     return proc
 
 
+def file_tree(root: Path) -> dict[str, bytes]:
+    """{relative path: bytes} of every file under ``root`` but dataset.json (whose ``run`` block
+    records how a run went)."""
+    return {
+        str(p.relative_to(root)): p.read_bytes()
+        for p in sorted(root.rglob("*"))
+        if p.is_file() and p.name != "dataset.json"
+    }
+
+
 @pytest.fixture(scope="session")
 def photo_dir(tmp_path_factory) -> Path:
     """A folder of a few synthetic 'photos' (smooth colour noise) for --textures."""

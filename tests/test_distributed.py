@@ -13,19 +13,11 @@ import time
 from pathlib import Path
 
 import pytest
-from conftest import CLI, run_cli
+from conftest import CLI, file_tree, run_cli
 
 pytestmark = pytest.mark.render
 
 ARGS = ["--res", 64, "--seed", 3, "--quiet"]
-
-
-def _tree(root: Path, skip=("dataset.json",)) -> dict[str, bytes]:
-    return {
-        str(p.relative_to(root)): p.read_bytes()
-        for p in sorted(root.rglob("*"))
-        if p.is_file() and p.name not in skip
-    }
 
 
 def _scene_files(tree: dict[str, bytes]) -> list[str]:
@@ -46,7 +38,7 @@ def test_shards_in_separate_folders_merge_into_a_single_run(default_dataset, tmp
 
     proc = run_cli("merge", merged, a, b)
     assert "merged 2 scenes from 2 folders; indexed 4 scenes, 40 frames" in proc.stdout
-    ref, got = _tree(default_dataset), _tree(merged)
+    ref, got = file_tree(default_dataset), file_tree(merged)
     assert sorted(ref) == sorted(got)
     assert [n for n in ref if ref[n] != got[n]] == []
     info = json.loads((merged / "dataset.json").read_text())
@@ -54,7 +46,7 @@ def test_shards_in_separate_folders_merge_into_a_single_run(default_dataset, tmp
     assert run_cli("validate", merged).returncode == 0
 
     run_cli("merge", a, a, b)  # into one of the parts
-    got = _tree(a)
+    got = file_tree(a)
     assert sorted(ref) == sorted(got) and [n for n in ref if ref[n] != got[n]] == []
 
 
@@ -70,7 +62,7 @@ def test_shards_started_together_into_a_new_folder_equal_a_single_run(default_da
     assert [p.returncode for p in procs] == [0, 0], errors
     if not (out / "manifest.parquet").exists():  # both finished at the same instant
         run_cli("index", out)
-    ref, got = _tree(default_dataset), _tree(out)
+    ref, got = file_tree(default_dataset), file_tree(out)
     assert sorted(ref) == sorted(got)
     assert [n for n in ref if ref[n] != got[n]] == []
 
@@ -116,7 +108,7 @@ def test_ray_backend_on_a_ray_cluster_equals_a_local_run(default_dataset, ray_cl
     out = tmp_path / "ray"
     proc = _ray_cli(ray_cluster, *ARGS, "--scenes", 4, "--workers", 2, "--out", out)
     assert "(4 rendered now)" in proc.stderr
-    ref, got = _tree(default_dataset), _tree(out)
+    ref, got = file_tree(default_dataset), file_tree(out)
     assert sorted(ref) == sorted(got)
     assert [n for n in ref if ref[n] != got[n]] == []
     run = json.loads((out / "dataset.json").read_text())["run"]
@@ -140,7 +132,7 @@ def test_ray_actor_killed_mid_run_is_replaced_and_its_scene_retried(
     assert killed.returncode == 0, "no Ray actor process found"
     assert proc.returncode == 0, stderr
     assert "worker process died" in stderr and "failures    0" not in stderr, stderr
-    ref, got = _tree(default_dataset), _tree(out)
+    ref, got = file_tree(default_dataset), file_tree(out)
     assert all(ref[n] == got[n] for n in _scene_files(ref))
     assert run_cli("validate", out).returncode == 0
 

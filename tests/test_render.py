@@ -15,7 +15,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from conftest import CLI, run_cli
+from conftest import CLI, file_tree, run_cli
 
 from stillbox_gen import camera, config, formats, generate, scene
 from stillbox_gen.manifest import read_manifest
@@ -204,14 +204,6 @@ def test_preview_draws_a_contact_sheet(default_dataset, tmp_path):
     assert img is not None and img.shape[0] > 300 and img.std() > 10
 
 
-def _tree(root: Path) -> dict[str, bytes]:
-    return {
-        str(p.relative_to(root)): p.read_bytes()
-        for p in sorted(root.rglob("*"))
-        if p.is_file() and p.name != "dataset.json"
-    }
-
-
 def test_killed_run_resumes_to_the_same_dataset_as_an_uninterrupted_one(tmp_path):
     """Kill mid-run, re-run: identical files; also independent of --workers."""
     args = ["--res", "64", "--scenes", "5", "--seed", "11", "--quiet"]
@@ -234,7 +226,7 @@ def test_killed_run_resumes_to_the_same_dataset_as_an_uninterrupted_one(tmp_path
     assert run_cli("validate", b, check=False).returncode == 1  # partial never looks complete
     resumed = run_cli(*args, "--workers", 1, "--out", b)
     assert f"({5 - done} rendered now)" in resumed.stderr
-    tree_a, tree_b = _tree(tmp_path / "a"), _tree(b)
+    tree_a, tree_b = file_tree(tmp_path / "a"), file_tree(b)
     assert sorted(tree_a) == sorted(tree_b)
     different = [name for name in tree_a if tree_a[name] != tree_b[name]]
     assert not different, different[:5]
@@ -249,10 +241,10 @@ def test_raising_scenes_extends_a_finished_dataset_without_touching_it(default_d
 
     ext = tmp_path / "ext"
     shutil.copytree(default_dataset, ext)
-    before = _tree(ext)
+    before = file_tree(ext)
     proc = run_cli("--res", 64, "--scenes", 5, "--seed", 3, "--out", ext, "--quiet")
     assert "(1 rendered now)" in proc.stderr
-    after = _tree(ext)
+    after = file_tree(ext)
     changed = [n for n in before if before[n] != after[n]]
     assert sorted(changed) == ["0/metadata.json", "manifest.parquet"]
     assert run_cli("validate", ext).returncode == 0
@@ -269,7 +261,7 @@ def test_two_shards_into_one_folder_equal_a_single_run(default_dataset, tmp_path
     missing = run_cli("index", out, check=False)
     assert missing.returncode == 2 and "lacks 2 of 4 scenes (0, 2)" in missing.stderr
     run_cli(*args, "--shard", "0/2")
-    tree_single, tree_sharded = _tree(default_dataset), _tree(out)
+    tree_single, tree_sharded = file_tree(default_dataset), file_tree(out)
     assert sorted(tree_single) == sorted(tree_sharded)
     assert [n for n in tree_single if tree_single[n] != tree_sharded[n]] == []
     assert json.loads((out / "dataset.json").read_text())["complete"] is True
@@ -314,7 +306,7 @@ def test_crashed_or_hung_worker_is_replaced_and_its_scene_retried(default_datase
     assert proc.returncode == 0, stderr
     reason = "worker process died" if how == "crash" else "hung worker"
     assert reason in stderr and "failures    0" not in stderr, stderr
-    ref, got = _tree(default_dataset), _tree(out)
+    ref, got = file_tree(default_dataset), file_tree(out)
     scene_files = [n for n in ref if "RGB_" in n or "depth_" in n or ".records" in n]
     assert scene_files and all(ref[n] == got[n] for n in scene_files)
     assert run_cli("validate", out).returncode == 0
