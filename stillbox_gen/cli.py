@@ -14,6 +14,7 @@ import click
 
 from . import config
 from .config import ConfigError
+from .stats import NOMINAL_SHIFT
 
 
 class DefaultGroup(click.Group):
@@ -355,6 +356,53 @@ def preview(dataset: Path, out: Path, scenes: int, max_depth: float) -> None:
         raise ConfigError("--scenes and --max-depth: must be positive")
     contact_sheet(dataset, out, scenes, max_depth)
     click.echo(f"wrote {out}")
+
+
+@cli.command()
+@click.argument("dataset", type=click.Path(path_type=Path))
+@click.option(
+    "--scenes",
+    type=int,
+    default=200,
+    show_default=True,
+    help="Measure the first N scenes (all when fewer).",
+)
+@click.option(
+    "--shift",
+    type=int,
+    default=NOMINAL_SHIFT,
+    show_default=True,
+    help="Nominal frame shift S: flow and residuals on pairs (i, i+S).",
+)
+@click.option(
+    "--flicker",
+    type=int,
+    default=0,
+    show_default=True,
+    help="Re-render frame 0 of the first K scenes with Blender (same pose; same and other "
+    "noise seed) and report the difference to the stored frames.",
+)
+@click.option(
+    "--out",
+    type=click.Path(path_type=Path),
+    help="Folder for stats.json and stats.png.  [default: DATASET]",
+)
+@click.option(
+    "--max-depth",
+    type=float,
+    default=100.0,
+    show_default=True,
+    help="Top of the depth histogram in stats.json / stats.png, metres.",
+)
+def stats(dataset: Path, scenes: int, shift: int, flicker: int, out, max_depth: float) -> None:
+    """Data-quality report: depth bands, walls vs objects, true flow, photometric residuals
+    (and render flicker), beside StillBox's published figures; writes stats.json, stats.png."""
+    from .stats import run, table
+
+    result = run(dataset, scenes, shift, flicker, out, max_depth, progress=True)
+    click.echo(table(result))
+    where = out or dataset
+    click.echo(f"wrote {where / 'stats.json'} and {where / 'stats.png'}", err=True)
 
 
 @cli.command()
