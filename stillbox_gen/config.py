@@ -22,6 +22,8 @@ from . import camera
 PRIMITIVE_KINDS = ("cube", "sphere", "cone", "torus", "cylinder", "slab")
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp")
 IMAGE_FORMATS = ("png", "jpg")
+PHOTO_SOURCES = ("bundled", "none")
+DISTANCE_LAWS = ("uniform", "volume")
 PATTERNS = ("noise", "voronoi", "wave", "magic", "checker", "brick", "gradient_stripes")
 # The last three have hard edges that alias at 1 sample (at 128 px, 1 sample + denoiser vs 256
 # samples: checker/brick/stripes 19-28 dB, noise/Voronoi 29-34 dB), so they are opt-in.
@@ -64,21 +66,24 @@ class ObjectsConfig:
 
     count: int = 20
     kinds: tuple[str, ...] = PRIMITIVE_KINDS
-    size_range: tuple[float, float] = (0.0, 2.0)  # largest extent, metres
-    distance_range: tuple[float, float] = (0.0, 25.0)  # from the first camera position, metres
-    behind_fraction: float = 0.15  # share placed anywhere around the camera (else in view)
+    size_range: tuple[float, float] = (0.0, 14.0)  # largest extent, metres
+    distance_range: tuple[float, float] = (4.0, 30.0)  # from the first camera position, metres
+    distance_law: str = "volume"  # "uniform" in distance or "volume" (uniform in the shell)
+    behind_fraction: float = 0.05  # share placed anywhere around the camera (else in view)
     path_clearance: float = 0.1  # metres kept between the camera path and any surface
 
 
 @dataclass(frozen=True)
 class MaterialsConfig:
-    """Shares of material kinds; ``texture_files`` is filled from ``--textures``."""
+    """Shares of material kinds; ``texture_files`` is filled from ``--textures``, else the
+    photos bundled with bpy are used (``photos = "bundled"``, see photos.py)."""
 
-    texture_ratio: float = 0.5  # share of objects with a photo texture (when a folder is given)
+    texture_ratio: float = 0.5  # share of surfaces (objects and walls) with a photo texture
     plain_ratio: float = 0.1  # share of the others with a plain colour
     glossy_ratio: float = 0.3  # share of surfaces with low roughness
     mirror_ratio: float = 0.05  # share of objects that are metallic mirrors
     patterns: tuple[str, ...] = SMOOTH_PATTERNS  # procedural patterns drawn uniformly
+    photos: str = "bundled"  # without --textures: "bundled" photos or "none" (patterns only)
     textures_dir: str | None = None
     texture_files: tuple[str, ...] = ()  # names relative to textures_dir, sorted
 
@@ -87,15 +92,15 @@ class MaterialsConfig:
 class BoxConfig:
     """The textured box around everything; centred near the first camera position."""
 
-    half_extent_range: tuple[float, float] = (40.0, 90.0)  # metres, per axis
+    half_extent_range: tuple[float, float] = (50.0, 75.0)  # metres, per axis
     offset_max: float = 10.0  # metres, per axis, of the box centre from the camera start
 
 
 @dataclass(frozen=True)
 class LightConfig:
-    sun_strength_range: tuple[float, float] = (2.0, 7.0)  # W/m^2
+    sun_strength_range: tuple[float, float] = (1.5, 5.0)  # W/m^2
     sun_elevation_range_deg: tuple[float, float] = (15.0, 90.0)
-    ambient_strength_range: tuple[float, float] = (0.8, 2.0)  # world background strength
+    ambient_strength_range: tuple[float, float] = (0.5, 1.2)  # world background strength
     colour_jitter: float = 0.15  # max deviation of light colour channels from white
 
 
@@ -105,9 +110,9 @@ SHADINGS = ("direct", "path")
 # dominate), "balanced" from there (about +1 dB at 256 px for about 20 % more time).
 DENOISE_QUALITIES = ("auto", "fast", "balanced", "high")
 QUALITY = {
-    "fast": {"shading": "direct", "samples": 1, "denoise": False, "denoise_quality": "fast"},
-    "default": {"shading": "direct", "samples": 1, "denoise": True, "denoise_quality": "auto"},
-    "high": {"shading": "direct", "samples": 4, "denoise": True, "denoise_quality": "high"},
+    "fast": {"shading": "direct", "samples": 1, "denoise": False},
+    "default": {"shading": "direct", "samples": 4, "denoise": False},
+    "high": {"shading": "direct", "samples": 16, "denoise": False},
 }
 
 
@@ -119,8 +124,8 @@ class RenderConfig:
     ``max_bounces`` counts glossy bounces under "direct" (mirrors need 1)."""
 
     shading: str = "direct"
-    samples: int = 1
-    denoise: bool = True  # OpenImageDenoise (albedo + normal guided, fast prefilter)
+    samples: int = 4  # per pixel, box filter: anti-aliasing by area integration
+    denoise: bool = False  # OpenImageDenoise (albedo + normal guided, fast prefilter)
     denoise_quality: str = "auto"
     max_bounces: int = 1
     persistent: bool = True  # keep scene data between the frames of a scene (same pixels)
@@ -290,9 +295,15 @@ def validate(cfg: DatasetConfig) -> None:
         raise ConfigError(f"objects.kinds: unknown {bad}; choose from {list(PRIMITIVE_KINDS)}")
     _check_range("objects.size_range", o.size_range)
     _check_range("objects.distance_range", o.distance_range)
+    if o.distance_law not in DISTANCE_LAWS:
+        raise ConfigError(
+            f"objects.distance_law: must be one of {DISTANCE_LAWS}, got {o.distance_law!r}"
+        )
     bad = [p for p in m.patterns if p not in PATTERNS]
     if bad or not m.patterns:
         raise ConfigError(f"materials.patterns: unknown {bad}; choose from {list(PATTERNS)}")
+    if m.photos not in PHOTO_SOURCES:
+        raise ConfigError(f"--photos: must be one of {PHOTO_SOURCES}, got {m.photos!r}")
     for name in ("texture_ratio", "plain_ratio", "glossy_ratio", "mirror_ratio"):
         if not 0 <= getattr(m, name) <= 1:
             raise ConfigError(f"materials.{name}: must be in [0, 1]")

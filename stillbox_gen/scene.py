@@ -16,13 +16,17 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from . import camera, shapes
+from . import camera, photos, shapes
 from .config import DatasetConfig, MaterialsConfig
 
 # Pattern frequencies (features per metre), low enough that textures stay legible at 64 px with a
 # 90 deg FOV: one pixel covers distance / 32 metres, i.e. ~0.3 m at 10 m and ~1.5 m at 50 m.
 OBJECT_TEXTURE_SCALE = (0.3, 1.5)
 WALL_TEXTURE_SCALE = (0.02, 0.08)
+# Photos (images per metre): one photo spans 5-30 m on an object and 50-250 m on a wall, so a
+# surface shows a random crop of it rather than many repeats.
+OBJECT_PHOTO_SCALE = (1 / 30, 1 / 5)
+WALL_PHOTO_SCALE = (1 / 250, 1 / 50)
 MAX_ATTEMPTS = 1000
 
 
@@ -134,28 +138,38 @@ def _colour(rng: np.random.Generator, value: float) -> list[float]:
     return [c**2.2 for c in (r, g, b)]  # sRGB-ish to linear
 
 
+def photo_files(cfg: MaterialsConfig) -> tuple[str, ...]:
+    """Photos to draw from: the --textures folder's, else the bundled ones (unless turned off)."""
+    if cfg.texture_files:
+        return cfg.texture_files
+    return photos.BUNDLED_PHOTOS if cfg.photos == "bundled" else ()
+
+
 def sample_material(
     rng: np.random.Generator,
     cfg: MaterialsConfig,
     scale_range: tuple[float, float],
+    photo_scale_range: tuple[float, float],
     allow_plain: bool = True,
     allow_mirror: bool = True,
 ) -> MaterialSpec:
-    """One surface. ``scale_range`` (features per metre) depends on the typical viewing distance."""
-    use_image = bool(cfg.texture_files) and rng.random() < cfg.texture_ratio
+    """One surface. ``scale_range`` (pattern features per metre) and ``photo_scale_range``
+    (photos per metre) depend on the typical viewing distance."""
+    files = photo_files(cfg)
+    use_image = bool(files) and rng.random() < cfg.texture_ratio
     plain = not use_image and rng.random() < cfg.plain_ratio and allow_plain
     mirror = rng.random() < cfg.mirror_ratio and allow_mirror
     glossy = rng.random() < cfg.glossy_ratio
-    roughness = 0.02 if mirror else float(rng.uniform(0.05, 0.3) if glossy else rng.uniform(0.5, 1))
+    roughness = 0.0 if mirror else float(rng.uniform(0.05, 0.3) if glossy else rng.uniform(0.5, 1))
     common = dict(
         roughness=roughness,
         metallic=1.0 if mirror else 0.0,
-        scale=_log_uniform(rng, *scale_range),
+        scale=_log_uniform(rng, *(photo_scale_range if use_image else scale_range)),
         offset=_rounded(rng.uniform(-100, 100, size=3)),
         rotation=_rounded(rng.uniform(0, 2 * math.pi, size=3)),
     )
     if use_image:
-        image = cfg.texture_files[int(rng.integers(len(cfg.texture_files)))]
+        image = files[int(rng.integers(len(files)))]
         tint = [1.0, 1.0, 1.0] if mirror else _rounded(rng.uniform(0.7, 1.0, size=3))
         return MaterialSpec(
             "image", None, colors=[tint], positions=[], detail=0.0, image=image, **common
@@ -205,6 +219,15 @@ def primitive_dimensions(rng: np.random.Generator, kind: str, size: float) -> li
     raise ValueError(kind)
 
 
+def sample_distance(rng: np.random.Generator, r: tuple[float, float], law: str) -> float:
+    """Distance in metres within ``r``: "uniform" in distance, or "volume", uniform in the volume
+    of the shell (density proportional to distance squared, so more objects far than near)."""
+    if law == "uniform":
+        return _uniform(rng, r)
+    lo, hi = r[0] ** 3, r[1] ** 3
+    return float(rng.uniform(lo, hi) ** (1.0 / 3.0))
+
+
 def sample_camera(rng: np.random.Generator, cfg: DatasetConfig) -> CameraSpec:
     c = cfg.camera
     r0 = camera.random_rotation(rng) if c.random_orientation else np.eye(3)
@@ -244,7 +267,7 @@ def sample_primitive(
     kind = o.kinds[int(rng.integers(len(o.kinds)))]
     size = _uniform(rng, o.size_range)
     dims = primitive_dimensions(rng, kind, size)
-    distance = _uniform(rng, o.distance_range)
+    distance = sample_distance(rng, o.distance_range, o.distance_law)
     if rng.random() < o.behind_fraction:
         ray = camera.random_unit_vector(rng)
     else:  # uniformly over the first frame's image
@@ -255,7 +278,7 @@ def sample_primitive(
     pose0 = np.array(cam.cam2world[0])
     location = pose0[:3, :3] @ (ray * distance) + pose0[:3, 3]
     rotation = camera.matrix_to_quat(camera.random_rotation(rng))
-    material = sample_material(rng, cfg.materials, OBJECT_TEXTURE_SCALE)
+    material = sample_material(rng, cfg.materials, OBJECT_TEXTURE_SCALE, OBJECT_PHOTO_SCALE)
     return PrimitiveSpec(kind, dims, _rounded(location), _rounded(rotation), material)
 
 
@@ -297,7 +320,12 @@ def sample_box(rng: np.random.Generator, cfg: DatasetConfig) -> BoxSpec:
         center=_rounded(rng.uniform(-b.offset_max, b.offset_max, size=3)),
         half_extents=_rounded(rng.uniform(*b.half_extent_range, size=3)),
         material=sample_material(
-            rng, cfg.materials, WALL_TEXTURE_SCALE, allow_plain=False, allow_mirror=False
+            rng,
+            cfg.materials,
+            WALL_TEXTURE_SCALE,
+            WALL_PHOTO_SCALE,
+            allow_plain=False,
+            allow_mirror=False,
         ),
     )
 

@@ -12,7 +12,7 @@ import bpy
 import numpy as np
 from mathutils import Matrix, Quaternion, Vector
 
-from .. import camera, shapes
+from .. import camera, photos, shapes
 
 SMOOTH_KINDS = {"sphere", "torus", "cylinder", "cone"}
 _PATTERN_NODES = {
@@ -96,7 +96,32 @@ def make_material(name: str, spec: dict, textures_dir: str | None, ambient=None)
             links.new(colour, mix.inputs["A"])
             mix.inputs["B"].default_value = (*ambient, 1.0)
             links.new(mix.outputs["Result"], bsdf.inputs["Emission Color"])
+    if ambient is not None:
+        _only_camera_and_mirror_rays(nodes, links, bsdf)
     return mat
+
+
+def _only_camera_and_mirror_rays(nodes, links, bsdf) -> None:
+    """Shade a surface black for every ray but camera rays and mirror (singular) reflections.
+
+    Under "direct" shading this removes all sampled light: the ambient emission of one surface
+    no longer lights the others through BSDF-sampled rays, and rough glossy lobes no longer pick
+    up sunlit surfaces at random. What is left (sun through one deterministic shadow ray, ambient
+    emission, sharp mirror images) is the same whatever the noise seed.
+    """
+    output = next(n for n in nodes if n.type == "OUTPUT_MATERIAL")
+    path = nodes.new("ShaderNodeLightPath")
+    gate = nodes.new("ShaderNodeMath")
+    gate.operation = "MAXIMUM"
+    links.new(path.outputs["Is Camera Ray"], gate.inputs[0])
+    links.new(path.outputs["Is Singular Ray"], gate.inputs[1])
+    black = nodes.new("ShaderNodeEmission")
+    black.inputs["Strength"].default_value = 0.0
+    mix = nodes.new("ShaderNodeMixShader")
+    links.new(gate.outputs["Value"], mix.inputs["Fac"])
+    links.new(black.outputs["Emission"], mix.inputs[1])
+    links.new(bsdf.outputs["BSDF"], mix.inputs[2])
+    links.new(mix.outputs["Shader"], output.inputs["Surface"])
 
 
 def _base_colour(nodes, links, spec: dict, textures_dir: str | None):
@@ -111,8 +136,11 @@ def _base_colour(nodes, links, spec: dict, textures_dir: str | None):
     links.new(coords.outputs["Object"], mapping.inputs["Vector"])
     if spec["kind"] == "image":
         tex = nodes.new("ShaderNodeTexImage")
-        path = str(Path(textures_dir) / spec["image"])
-        tex.image = bpy.data.images.load(path, check_existing=True)
+        if textures_dir is None:
+            tex.image = _bundled_image(spec["image"])
+        else:
+            path = str(Path(textures_dir) / spec["image"])
+            tex.image = bpy.data.images.load(path, check_existing=True)
         tex.projection = "BOX"
         tex.projection_blend = 0.2
         links.new(mapping.outputs["Vector"], tex.inputs["Vector"])
@@ -134,6 +162,21 @@ def _base_colour(nodes, links, spec: dict, textures_dir: str | None):
         el.color = (*colour, 1.0)
     links.new(tex.outputs[output], ramp.inputs["Fac"])
     return ramp.outputs["Color"]
+
+
+def _bundled_image(name: str):
+    """A bundled photo as a linear float image, tone-mapped once per process and kept."""
+    key = f"bundled:{name}"
+    image = bpy.data.images.get(key)
+    if image is None:
+        rgb = photos.load_bundled(name)[::-1]  # Blender stores the bottom row first
+        h, w = rgb.shape[:2]
+        image = bpy.data.images.new(key, w, h, alpha=False, float_buffer=True)
+        image.colorspace_settings.name = "Linear Rec.709"
+        rgba = np.concatenate([rgb, np.ones((h, w, 1), np.float32)], axis=-1)
+        image.pixels.foreach_set(rgba.ravel())
+        image.pack()  # keep the pixels: a generated image has no file to reload them from
+    return image
 
 
 def make_mesh_object(name: str, kind: str, dims, inward: bool = False):
