@@ -21,7 +21,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from . import config, formats, manifest
+from . import config, formats, manifest, photos
 from .config import ConfigError, DatasetConfig, denoise_quality
 from .scene import sample_scene
 
@@ -161,11 +161,21 @@ def dataset_info(cfg: DatasetConfig, scenes: int, complete: bool, **extra) -> di
             "view_transform": "Standard",
             "rgb": f"8-bit sRGB {r.image_format}",
             "depth": formats.DEPTH_CONVENTION,
-            "noise_seed": "per frame, derived from the scene seed",
+            "pixel_filter": "box, 1 pixel wide (samples integrate the pixel's area)",
+            "noise_seed": "one per scene (the scene seed): fixed sample placement in every frame",
+            "photos": photo_source(cfg),
         },
         "config": cfg.to_dict(),
         **extra,
     }
+
+
+def photo_source(cfg: DatasetConfig) -> str | None:
+    """Where the photo textures come from, for dataset.json."""
+    m = cfg.materials
+    if m.texture_files:
+        return f"--textures {m.textures_dir} ({len(m.texture_files)} images)"
+    return photos.BUNDLED_SOURCE if m.photos == "bundled" else None
 
 
 def pending_indices(out: Path, scenes: int, shard: tuple[int, int] = (0, 1)) -> list[int]:

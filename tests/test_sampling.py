@@ -388,3 +388,68 @@ def test_fingerprint_tracks_parameters(cfg):
     assert config.replace(cfg, camera={"width": 128}).fingerprint() != fp
     assert config.replace(cfg, objects={"count": 21}).fingerprint() != fp
     assert config.replace(cfg, render={"samples": 8}).fingerprint() != fp
+
+
+# ---------------------------------------------------------------- calibrated placement, photos
+
+
+def test_volume_law_distances_follow_the_cube_law(cfg, scenes):
+    """distance_law "volume": P(d < r) = (r^3 - lo^3) / (hi^3 - lo^3) (Kolmogorov distance)."""
+    o = cfg.objects
+    assert o.distance_law == "volume"
+    d = np.sort(
+        [
+            np.linalg.norm(np.array(p.location) - _positions(s)[0])
+            for s in scenes[:200]
+            for p in s.primitives
+        ]
+    )
+    lo, hi = o.distance_range
+    expected = (d**3 - lo**3) / (hi**3 - lo**3)
+    empirical = np.arange(1, len(d) + 1) / len(d)
+    assert np.abs(empirical - expected).max() < 0.03  # 4,000 draws: KS 1 % level is 0.026
+    uniform = (d - lo) / (hi - lo)
+    assert np.abs(empirical - uniform).max() > 0.1  # and clearly not uniform in distance
+
+
+def test_bundled_photos_are_used_without_a_textures_folder(cfg, scenes):
+    """About texture_ratio of surfaces (objects and walls) get one of the bundled photos."""
+    from stillbox_gen import photos
+
+    mats = [p.material for s in scenes[:200] for p in s.primitives]
+    walls = [s.box.material for s in scenes[:200]]
+    for group in (mats, walls):
+        share = np.mean([m.kind == "image" for m in group])
+        assert abs(share - cfg.materials.texture_ratio) < 0.1, share
+    used = {m.image for m in mats + walls if m.kind == "image"}
+    assert used == set(photos.BUNDLED_PHOTOS)
+    off = config.replace(cfg, materials={"photos": "none"})
+    assert not any(p.material.kind == "image" for p in sample_scene(off, 0).primitives)
+    with pytest.raises(ConfigError, match="--photos"):
+        config.validate(config.replace(cfg, materials={"photos": "web"}))
+
+
+def test_bundled_photos_load_as_tone_mapped_reflectance():
+    """Each of the 8 panoramas ships with bpy and maps to [0, 1] around the chosen middle grey."""
+    from stillbox_gen import photos
+
+    assert sorted(p.name for p in photos.bundled_folder().glob("*.exr")) == sorted(
+        photos.BUNDLED_PHOTOS
+    )
+    img = photos.load_bundled("forest.exr")
+    assert img.shape == (512, 1024, 3) and img.dtype == np.float32
+    assert 0.0 <= img.min() and img.max() <= 1.0
+    lum = img @ np.array([0.2126, 0.7152, 0.0722])
+    assert 0.1 < np.median(lum) < 0.5 and lum.std() > 0.05  # a photo, not a flat colour
+
+
+def test_tone_map_puts_the_log_average_at_middle_grey():
+    """Exposure-independent: scaling the HDR input by any factor gives the same result."""
+    from stillbox_gen import photos
+
+    rng = np.random.default_rng(0)
+    hdr = np.exp(rng.normal(0.0, 2.0, size=(32, 32, 3)))
+    a, b = photos.tone_map(hdr), photos.tone_map(hdr * 1000.0)
+    np.testing.assert_allclose(a, b, atol=1e-3)  # up to the 1e-4 guard inside the log
+    grey = np.full((4, 4, 3), 7.0)  # a uniform image is its own log-average
+    np.testing.assert_allclose(photos.tone_map(grey), photos.MIDDLE_GREY, atol=1e-3)
