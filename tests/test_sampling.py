@@ -438,7 +438,7 @@ def test_bundled_photos_load_as_tone_mapped_reflectance():
     )
     img = photos.load_bundled("forest.exr")
     assert img.shape == (512, 1024, 3) and img.dtype == np.float32
-    assert 0.0 <= img.min() and img.max() <= 1.0
+    assert img.min() >= 0.0 and img.max() <= 1.0
     lum = img @ np.array([0.2126, 0.7152, 0.0722])
     assert 0.1 < np.median(lum) < 0.5 and lum.std() > 0.05  # a photo, not a flat colour
 
