@@ -1,9 +1,15 @@
-"""Photographs shipped with the dependencies, used as textures when no ``--textures`` is given.
+"""Photo textures: the photographs shipped with bpy (used when no ``--textures`` is given), and
+the pre-filtered resolution at which any photo is rendered.
 
 The bpy wheel carries eight CC0 photographic panoramas from Poly Haven (1024x512 float EXR, in
 ``bpy/<version>/datafiles/studiolights/world/``). Random crops, rotations and scales of them (drawn
 in scene.py like any texture mapping) give many distinct photo textures. They are high dynamic
 range light probes, so each is turned into a reflectance map in [0, 1] by a fixed tone curve.
+
+Cycles samples image textures without mip-maps: a photo whose texels are much smaller than a
+pixel aliases (a few samples per pixel pick a few of its many texels). So each surface gets the
+photo area-downsampled to about TEXELS_PER_PIXEL texels per pixel footprint at its distance
+(:func:`prefiltered_width`), a static mip-map level chosen per surface.
 
 No bpy import here: the folder is found through the installed package's location.
 """
@@ -30,6 +36,8 @@ BUNDLED_SOURCE = (
     "bpy datafiles/studiolights/world: 8 CC0 panoramas by Greg Zaal (Poly Haven), 1024x512"
 )
 MIDDLE_GREY = 0.25  # reflectance the geometric-mean luminance of a photo is mapped to
+TEXELS_PER_PIXEL = 2.0  # texels across one pixel's footprint after pre-filtering
+MIN_WIDTH = 8  # texels: the coarsest level kept
 
 
 def bundled_folder() -> Path:
@@ -57,6 +65,64 @@ def tone_map(hdr: np.ndarray) -> np.ndarray:
     x = rgb * (MIDDLE_GREY / key)
     y = x / (1.0 + x) * (1.0 + MIDDLE_GREY)
     return np.clip(y, 0.0, 1.0).astype(np.float32)
+
+
+def prefiltered_width(
+    full_width: int, photo_span_m: float, distance_m: float, focal_px: float
+) -> int:
+    """Width in texels of the pyramid level used for a photo spanning ``photo_span_m`` metres
+    on a surface ``distance_m`` metres from the camera (focal length in pixels).
+
+    A pixel covers distance / focal metres there; the level is the smallest of full_width,
+    full_width / 2, ... that still gives TEXELS_PER_PIXEL texels per pixel.
+    """
+    wanted = TEXELS_PER_PIXEL * photo_span_m * focal_px / max(distance_m, 1e-3)
+    width = full_width
+    while width // 2 >= max(wanted, MIN_WIDTH):
+        width //= 2
+    return width
+
+
+def object_distance(location, dimensions, camera_position) -> float:
+    """Typical viewing distance of an object's surface: centre distance minus half its largest
+    extent (its near side), at least 1 m. Metres."""
+    centre = float(np.linalg.norm(np.subtract(location, camera_position)))
+    return max(centre - max(dimensions) / 2.0, 1.0)
+
+
+def wall_distance(center, half_extents, camera_position) -> float:
+    """Typical viewing distance of the box's walls: mean distance from the camera to the six
+    wall planes. Metres."""
+    offset = np.subtract(camera_position, center)
+    h = np.asarray(half_extents, dtype=float)
+    return float(np.mean(np.concatenate([h - offset, h + offset])))
+
+
+def downsample(image: np.ndarray, width: int) -> np.ndarray:
+    """Area-average an (H, W, 3) image to ``width`` texels across (aspect kept)."""
+    h, w = image.shape[:2]
+    if width >= w:
+        return image
+    import cv2
+
+    height = max(1, round(h * width / w))
+    return cv2.resize(image, (width, height), interpolation=cv2.INTER_AREA)
+
+
+def srgb_to_linear(srgb8: np.ndarray) -> np.ndarray:
+    """8-bit sRGB -> linear RGB in [0, 1], float32."""
+    x = srgb8.astype(np.float32) / 255.0
+    return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4).astype(np.float32)
+
+
+def load_user(path: Path) -> np.ndarray:
+    """A photo from a --textures folder as linear RGB (H, W, 3), top row first."""
+    import cv2
+
+    bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if bgr is None:
+        raise FileNotFoundError(f"cannot read texture {path}")
+    return srgb_to_linear(bgr[..., ::-1])
 
 
 def load_bundled(name: str) -> np.ndarray:

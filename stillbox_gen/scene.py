@@ -20,8 +20,9 @@ from . import camera, photos, shapes
 from .config import DatasetConfig, MaterialsConfig
 
 # Pattern frequencies (features per metre), low enough that textures stay legible at 64 px with a
-# 90 deg FOV: one pixel covers distance / 32 metres, i.e. ~0.3 m at 10 m and ~1.5 m at 50 m.
-OBJECT_TEXTURE_SCALE = (0.3, 1.5)
+# 90 deg FOV: one pixel covers distance / 32 metres, i.e. ~0.5 m on an object at 15 m and ~2 m
+# on a wall at 60 m, so a feature spans at least about 4 pixels.
+OBJECT_TEXTURE_SCALE = (0.08, 0.5)
 WALL_TEXTURE_SCALE = (0.02, 0.08)
 # Photos (images per metre): one photo spans 5-30 m on an object and 50-250 m on a wall, so a
 # surface shows a random crop of it rather than many repeats.

@@ -67,18 +67,22 @@ def _pattern(nodes, pattern: str, detail: float):
     return tex, output
 
 
-def make_material(name: str, spec: dict, textures_dir: str | None, ambient=None):
+def make_material(
+    name: str, spec: dict, textures_dir: str | None, footprint: tuple[float, float], ambient=None
+):
     """Principled BSDF whose base colour follows the MaterialSpec (object-space, metric mapping).
 
     ``ambient`` (linear RGB, strength included) adds an emission of base colour x ambient: the
     noise-free ambient term of "direct" shading, in place of sampled world light.
+    ``footprint`` = (typical distance of the surface in metres, focal length in pixels) sets the
+    resolution of a photo texture.
     """
     mat = bpy.data.materials.new(name)
     nodes, links = mat.node_tree.nodes, mat.node_tree.links
     bsdf = nodes.get("Principled BSDF") or nodes.new("ShaderNodeBsdfPrincipled")
     bsdf.inputs["Roughness"].default_value = spec["roughness"]
     bsdf.inputs["Metallic"].default_value = spec["metallic"]
-    colour = _base_colour(nodes, links, spec, textures_dir)
+    colour = _base_colour(nodes, links, spec, textures_dir, footprint)
     if colour is None:
         bsdf.inputs["Base Color"].default_value = (*spec["colors"][0], 1.0)
     else:
@@ -124,7 +128,7 @@ def _only_camera_and_mirror_rays(nodes, links, bsdf) -> None:
     links.new(mix.outputs["Shader"], output.inputs["Surface"])
 
 
-def _base_colour(nodes, links, spec: dict, textures_dir: str | None):
+def _base_colour(nodes, links, spec: dict, textures_dir: str | None, footprint):
     """Output socket of the material's colour pattern, or None for a plain colour."""
     if spec["kind"] == "plain":
         return None
@@ -136,11 +140,7 @@ def _base_colour(nodes, links, spec: dict, textures_dir: str | None):
     links.new(coords.outputs["Object"], mapping.inputs["Vector"])
     if spec["kind"] == "image":
         tex = nodes.new("ShaderNodeTexImage")
-        if textures_dir is None:
-            tex.image = _bundled_image(spec["image"])
-        else:
-            path = str(Path(textures_dir) / spec["image"])
-            tex.image = bpy.data.images.load(path, check_existing=True)
+        tex.image = _photo(spec["image"], textures_dir, 1.0 / spec["scale"], footprint)
         tex.projection = "BOX"
         tex.projection_blend = 0.2
         links.new(mapping.outputs["Vector"], tex.inputs["Vector"])
@@ -164,17 +164,29 @@ def _base_colour(nodes, links, spec: dict, textures_dir: str | None):
     return ramp.outputs["Color"]
 
 
-def _bundled_image(name: str):
-    """A bundled photo as a linear float image, tone-mapped once per process and kept."""
-    key = f"bundled:{name}"
-    image = bpy.data.images.get(key)
+_PHOTOS: dict = {}  # (textures_dir, name) -> full-resolution linear RGB, per process
+
+
+def _photo(name: str, textures_dir: str | None, span_m: float, footprint: tuple[float, float]):
+    """Blender image of a photo pre-filtered for a surface (photos.prefiltered_width), made once
+    per process and level and kept across scenes. ``footprint`` = (distance m, focal px)."""
+    key = (textures_dir, name)
+    if key not in _PHOTOS:
+        if textures_dir is None:
+            _PHOTOS[key] = photos.load_bundled(name)
+        else:
+            _PHOTOS[key] = photos.load_user(Path(textures_dir) / name)
+    full = _PHOTOS[key]
+    width = photos.prefiltered_width(full.shape[1], span_m, *footprint)
+    label = f"{'bundled' if textures_dir is None else 'user'}:{name}:{width}"
+    image = bpy.data.images.get(label)
     if image is None:
-        rgb = photos.load_bundled(name)[::-1]  # Blender stores the bottom row first
+        rgb = photos.downsample(full, width)[::-1]  # Blender stores the bottom row first
         h, w = rgb.shape[:2]
-        image = bpy.data.images.new(key, w, h, alpha=False, float_buffer=True)
+        image = bpy.data.images.new(label, w, h, alpha=False, float_buffer=True)
         image.colorspace_settings.name = "Linear Rec.709"
         rgba = np.concatenate([rgb, np.ones((h, w, 1), np.float32)], axis=-1)
-        image.pixels.foreach_set(rgba.ravel())
+        image.pixels.foreach_set(np.ascontiguousarray(rgba).ravel())
         image.pack()  # keep the pixels: a generated image has no file to reload them from
     return image
 
@@ -203,20 +215,26 @@ def build_scene(spec: dict, textures_dir: str | None, shading: str = "direct"):
     light = spec["light"]
     direct = shading == "direct"
     ambient = [c * light["ambient_strength"] for c in light["ambient_color"]] if direct else None
+    focal = spec["camera"]["K"][0][0]
+    start = [row[3] for row in spec["camera"]["cam2world"][0][:3]]
     for i, p in enumerate(spec["primitives"]):
         obj = make_mesh_object(f"prim{i:02d}_{p['kind']}", p["kind"], p["dimensions"])
         obj.location = p["location"]
         obj.rotation_mode = "QUATERNION"
         obj.rotation_quaternion = Quaternion(p["rotation"])
+        footprint = (photos.object_distance(p["location"], p["dimensions"], start), focal)
         obj.data.materials.append(
-            make_material(f"mat{i:02d}", p["material"], textures_dir, ambient)
+            make_material(f"mat{i:02d}", p["material"], textures_dir, footprint, ambient)
         )
 
     box = spec["box"]
     walls = make_mesh_object("walls", "cube", [2 * h for h in box["half_extents"]], inward=True)
     walls.location = box["center"]
     walls.visible_shadow = False  # lets the sun and the sky light the inside
-    walls.data.materials.append(make_material("walls", box["material"], textures_dir, ambient))
+    footprint = (photos.wall_distance(box["center"], box["half_extents"], start), focal)
+    walls.data.materials.append(
+        make_material("walls", box["material"], textures_dir, footprint, ambient)
+    )
 
     sun_data = bpy.data.lights.new("sun", type="SUN")
     sun_data.energy = light["sun_strength"]
