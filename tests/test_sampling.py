@@ -453,3 +453,32 @@ def test_tone_map_puts_the_log_average_at_middle_grey():
     np.testing.assert_allclose(a, b, atol=1e-3)  # up to the 1e-4 guard inside the log
     grey = np.full((4, 4, 3), 7.0)  # a uniform image is its own log-average
     np.testing.assert_allclose(photos.tone_map(grey), photos.MIDDLE_GREY, atol=1e-3)
+
+
+def test_photo_prefilter_level_gives_about_two_texels_per_pixel():
+    """The level halves the width while at least TEXELS_PER_PIXEL texels stay per pixel."""
+    from stillbox_gen import photos
+
+    # a 10 m photo 20 m away at f = 32 px: 16 pixels across it, so 32 texels wanted
+    assert photos.prefiltered_width(1024, 10.0, 20.0, 32.0) == 32
+    assert photos.prefiltered_width(1024, 10.0, 20.0, 128.0) == 128  # 4x the focal, 4x texels
+    assert photos.prefiltered_width(1024, 10.0, 1.0, 128.0) == 1024  # never above full size
+    assert photos.prefiltered_width(1024, 1.0, 200.0, 32.0) == photos.MIN_WIDTH
+    for span, dist, f in [(5.0, 7.0, 32.0), (30.0, 13.0, 64.0), (150.0, 60.0, 128.0)]:
+        w = photos.prefiltered_width(1024, span, dist, f)
+        per_pixel = w / (span * f / dist)
+        assert w == 1024 or photos.TEXELS_PER_PIXEL <= per_pixel < 2 * photos.TEXELS_PER_PIXEL
+    img = np.random.default_rng(0).random((64, 128, 3)).astype(np.float32)
+    small = photos.downsample(img, 32)
+    assert small.shape == (16, 32, 3)
+    np.testing.assert_allclose(small[0, 0], img[:4, :4].mean(axis=(0, 1)), rtol=1e-5)
+
+
+def test_surface_distances_for_the_prefilter():
+    from stillbox_gen import photos
+
+    assert photos.object_distance([0, 0, 10], [4, 2, 2], [0, 0, 0]) == pytest.approx(8.0)
+    assert photos.object_distance([0, 0, 1], [4, 2, 2], [0, 0, 0]) == 1.0  # camera inside
+    # box centred 10 m off along x: planes at 40 and 60 m in x, 50 m in y and z
+    d = photos.wall_distance([10, 0, 0], [50, 50, 50], [0, 0, 0])
+    assert d == pytest.approx((60 + 40 + 4 * 50) / 6)
