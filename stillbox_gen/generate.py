@@ -174,7 +174,7 @@ def photo_source(cfg: DatasetConfig) -> str | None:
     """Where the photo textures come from, for dataset.json."""
     m = cfg.materials
     if m.texture_files:
-        return f"--textures {m.textures_dir} ({len(m.texture_files)} images)"
+        return f"--textures ({len(m.texture_files)} images of config.materials.textures_dir)"
     return photos.BUNDLED_SOURCE if m.photos == "bundled" else None
 
 
