@@ -13,9 +13,9 @@ Over the first N scenes it measures:
 4. the photometric residual (grey levels on 0-255, mean absolute difference over the three
    channels): ``|I_j - I_i|`` without warp, and after warping I_j back to frame i with the true
    flow (bilinear), on pixels that stay in frame j and are not occluded there;
-5. optionally (``--flicker K``), the same-pose flicker: frame 0 of the first K scenes re-rendered
-   by Blender with the dataset's own render settings, against the stored frame; and the same with
-   another render noise seed (scene seed + 1).
+5. optionally (``--flicker K``), the same-pose flicker: the pose of frame 0 of the first K scenes
+   re-rendered by Blender with the dataset's own render settings as another frame of its scene,
+   against the stored frame; and as frame 0 with another scene seed (sample placement only).
 
 Averaging rule: pixels are pooled over all frames (depth, walls/objects) or all pairs
 (i, i + S), i = 0 .. frames - 1 - S (flow, residuals) of the chosen scenes, every pixel weighing
@@ -536,10 +536,12 @@ def spec_from_record(rec: dict, frames: list[int] | None = None) -> dict:
 
 
 def flicker_stats(root: Path, count: int, progress: bool = False, threads: int = 0) -> dict:
-    """Re-render frame 0 of the first ``count`` scenes at its stored pose with the dataset's
-    render settings, twice: with the scene's own seed and with seed + 1. Mean absolute
-    difference against the stored frame, grey levels (0-255, mean over the 3 channels), on
-    walls and on objects; also the largest depth difference (metres), a check of the pose."""
+    """Re-render the pose of frame 0 of the first ``count`` scenes with the dataset's render
+    settings: as frame 1 of its scene ("same_pose": what the generator gives when two frames
+    share a pose, whatever its per-frame seeding), and as frame 0 with scene seed + 1
+    ("other_seed": how much the sample placement alone moves pixels). Mean absolute difference
+    against the stored frame, grey levels (0-255, mean over the 3 channels), on walls and on
+    objects; also the largest depth difference (metres), a check of the pose."""
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor
 
@@ -556,7 +558,7 @@ def flicker_stats(root: Path, count: int, progress: bool = False, threads: int =
     cam, render = cfg["camera"], cfg["render"]
     image_format = render.get("image_format", "png")
     init = (render, cam["width"], cam["height"], threads, cfg["materials"].get("textures_dir"))
-    sums = {k: {p: [0.0, 0] for p in PARTS} for k in ("same_seed", "other_seed")}
+    sums = {k: {p: [0.0, 0] for p in PARTS} for k in ("same_pose", "other_seed")}
     depth_diff = 0.0
     used = []
     ctx = multiprocessing.get_context("spawn")
@@ -580,17 +582,20 @@ def flicker_stats(root: Path, count: int, progress: bool = False, threads: int =
                     K, rec["cam2world"][0], rec["box"]["center"], rec["box"]["half_extents"], w, h
                 ),
             )
-            for key, seed in (("same_seed", rec["seed"]), ("other_seed", rec["seed"] + 1)):
-                spec = spec_from_record(rec, frames=[0])
+            runs = (("same_pose", rec["seed"], [0, 0]), ("other_seed", rec["seed"] + 1, [0]))
+            for key, seed, frames in runs:
+                spec = spec_from_record(rec, frames=frames)
                 spec["seed"] = seed
                 out = Path(tmp) / f"{rec['index']}-{key}"
                 pool.submit(generate._worker_render, spec, str(out), image_format, False).result()
-                img = _read_rgb(out / formats.rgb_name(local, 0, image_format)).astype(np.float32)
+                last = len(frames) - 1
+                name = formats.rgb_name(local, last, image_format)
+                img = _read_rgb(out / name).astype(np.float32)
                 diff = np.abs(img - stored).mean(axis=-1)
                 for p, m in (("walls", wall), ("objects", ~wall)):
                     sums[key][p][0] += float(diff[m].sum(dtype=np.float64))
                     sums[key][p][1] += int(m.sum())
-                new_depth = formats.read_depth_exr(out / formats.depth_name(local, 0))
+                new_depth = formats.read_depth_exr(out / formats.depth_name(local, last))
                 depth_diff = max(depth_diff, float(np.abs(new_depth - depth).max()))
                 bar.update(1)
             used.append([rec["index"], 0])
@@ -600,9 +605,9 @@ def flicker_stats(root: Path, count: int, progress: bool = False, threads: int =
         **{k: {p: _mean(*sums[k][p]) for p in PARTS} for k in sums},
         "depth_max_abs_diff_m": depth_diff,
         "rule": (
-            "frame 0 of the first scenes re-rendered at its stored pose with the dataset's render "
-            "settings (dataset.json config.render): same_seed with the scene's seed (same-pose "
-            "flicker), other_seed with seed + 1; against the stored frame"
+            "the pose of frame 0 of the first scenes re-rendered with the dataset's render "
+            "settings (dataset.json config.render): same_pose as frame 1 of its scene (same-pose "
+            "flicker), other_seed as frame 0 with scene seed + 1; against the stored frame 0"
         ),
     }
 
@@ -653,7 +658,7 @@ def table(stats: dict) -> str:
         rows.append((f"  pixels kept for the warp, {p}", _fmt(rs["valid_share"][p], "%"), "-"))
     fk = stats.get("flicker")
     if fk:
-        for key, label in (("same_seed", "same-pose flicker"), ("other_seed", "other seed")):
+        for key, label in (("same_pose", "same-pose flicker"), ("other_seed", "other seed")):
             for p in PARTS:
                 rows.append((f"{label}, {p} (grey levels)", _fmt(fk[key][p], ""), "-"))
     head = ("", "ours", "StillBox")
