@@ -386,8 +386,8 @@ def preview(dataset: Path, out: Path, scenes: int, max_depth: float) -> None:
     type=int,
     default=0,
     show_default=True,
-    help="Re-render frame 0 of the first K scenes with Blender (same pose; same and other "
-    "noise seed) and report the difference to the stored frames.",
+    help="Re-render the pose of frame 0 of the first K scenes with Blender, as another frame of "
+    "its scene (same-pose flicker) and with another scene seed, against the stored frames.",
 )
 @click.option(
     "--out",

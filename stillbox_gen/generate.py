@@ -162,7 +162,11 @@ def dataset_info(cfg: DatasetConfig, scenes: int, complete: bool, **extra) -> di
             "rgb": f"8-bit sRGB {r.image_format}",
             "depth": formats.DEPTH_CONVENTION,
             "pixel_filter": "box, 1 pixel wide (samples integrate the pixel's area)",
-            "noise_seed": "one per scene (the scene seed): fixed sample placement in every frame",
+            "noise_seed": (
+                "per frame, derived from the scene seed"
+                if r.shading == "path"
+                else "one per scene (the scene seed): fixed sample placement in every frame"
+            ),
             "photos": photo_source(cfg),
         },
         "config": cfg.to_dict(),

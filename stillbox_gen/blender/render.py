@@ -79,14 +79,18 @@ def init_worker(
     _STATE.update(textures_dir=textures_dir, shading=render["shading"], scenes=0)
 
 
-def render_seed(scene_seed: int) -> int:
-    """Cycles seed of every frame of a scene.
+def render_seed(scene_seed: int, frame: int, shading: str) -> int:
+    """Cycles seed of a frame.
 
     "direct" shading draws no random light (see build.py), so the seed only places the samples
     inside each pixel. One seed per scene keeps that placement fixed on screen, like a
     supersampling grid: an unchanged view renders identically and sub-pixel motion changes
     pixels smoothly, where a per-frame seed would add frame-to-frame noise at every edge.
+    "path" shading samples light at random: there a seed per frame keeps its noise from
+    sticking to the screen while the camera moves.
     """
+    if shading == "path":
+        return int((scene_seed * 1_000_003 + frame * 7_919) % (2**31 - 1))
     return int(scene_seed % (2**31 - 1))
 
 
@@ -120,9 +124,9 @@ def render_scene(spec: dict, out_dir: str, image_format: str, legacy: bool) -> d
         cv2.IMWRITE_JPEG_SAMPLING_FACTOR,
         cv2.IMWRITE_JPEG_SAMPLING_FACTOR_444,
     ]
-    scene.cycles.seed = render_seed(spec["seed"])
     for f, pose in enumerate(spec["camera"]["cam2world"]):
         build.set_camera_pose(cam, pose)
+        scene.cycles.seed = render_seed(spec["seed"], f, _STATE["shading"])
         tmp = out / f"_render_{f:02d}.exr"
         scene.render.filepath = str(tmp)
         bpy.ops.render.render(write_still=True)
