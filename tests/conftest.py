@@ -15,6 +15,15 @@ os.environ.setdefault("OPENCV_IO_ENABLE_OPENEXR", "1")
 CLI = [sys.executable, "-m", "stillbox_gen.cli"]
 
 
+def assert_user_error(proc: subprocess.CompletedProcess, *words: str) -> None:
+    """A user mistake: exit 2 and one stderr line ``stillbox-gen: error: ...`` naming ``words``."""
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2, proc.stderr
+    assert len(lines) == 1 and lines[0].startswith("stillbox-gen: error: "), proc.stderr
+    for w in words:
+        assert w in lines[0], (w, lines[0])
+
+
 def run_cli(*args: str, check: bool = True, timeout: float = 600) -> subprocess.CompletedProcess:
     proc = subprocess.run([*CLI, *map(str, args)], capture_output=True, text=True, timeout=timeout)
     if check and proc.returncode != 0:

@@ -5,15 +5,7 @@ from __future__ import annotations
 import json
 
 import pytest
-from conftest import run_cli
-
-
-def assert_user_error(proc, *words: str) -> None:
-    lines = proc.stderr.strip().splitlines()
-    assert proc.returncode == 2, proc.stderr
-    assert len(lines) == 1 and lines[0].startswith("stillbox-gen: error: "), proc.stderr
-    for w in words:
-        assert w in lines[0], (w, lines[0])
+from conftest import assert_user_error, run_cli
 
 
 @pytest.mark.parametrize(

@@ -6,7 +6,7 @@ import json
 
 import numpy as np
 import pytest
-from conftest import run_cli
+from conftest import assert_user_error, run_cli
 
 from stillbox_gen import stats
 from stillbox_gen.camera import intrinsics_matrix, pose_matrix, random_rotation
@@ -14,14 +14,6 @@ from stillbox_gen.camera import intrinsics_matrix, pose_matrix, random_rotation
 # 5x5 pixels, f = 2 px, principal point at the centre pixel: pixel (u, v) has the camera ray
 # ((u - 2) / 2, (v - 2) / 2, 1).
 K5 = intrinsics_matrix(2.0, 2.0, 2.0)
-
-
-def assert_user_error(proc, *words: str) -> None:
-    lines = proc.stderr.strip().splitlines()
-    assert proc.returncode == 2, proc.stderr
-    assert len(lines) == 1 and lines[0].startswith("stillbox-gen: error: "), proc.stderr
-    for w in words:
-        assert w in lines[0], (w, lines[0])
 
 
 # ---------------------------------------------------------------- bands and histograms
