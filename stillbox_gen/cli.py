@@ -6,15 +6,20 @@ User mistakes print one line ``stillbox-gen: error: ...`` and exit with code 2, 
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import click
 
 from . import config
 from .config import ConfigError
 from .stats import NOMINAL_SHIFT
+
+if TYPE_CHECKING:
+    from .generate import RunOptions
 
 
 class DefaultGroup(click.Group):
@@ -184,38 +189,11 @@ def parse_point(value: str) -> tuple[float, float]:
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 def generate(**o) -> None:
     """Render a dataset (resumes when --out holds an unfinished one with the same parameters)."""
-    from .generate import RunOptions
     from .generate import generate as run
 
     cfg = build_config(o)
-    for flag in ("scenes", "workers"):
-        if o[flag] < 1:
-            raise ConfigError(f"--{flag}: must be at least 1, got {o[flag]}")
-    if o["threads"] < 0:
-        raise ConfigError(f"--threads: must be >= 0, got {o['threads']}")
-    c = cfg.camera
-    res = f"{c.width}" if c.width == c.height else f"{c.width}x{c.height}"
-    out = o["out"] or Path("data") / f"stillbox-{res}"
-    shard = parse_shard(o["shard"]) if o["shard"] else (0, 1)
-    if o["scene_timeout"] <= 0:
-        raise ConfigError(f"--scene-timeout: must be positive (seconds), got {o['scene_timeout']}")
-    if o["ray_address"] and o["backend"] != "ray":
-        raise ConfigError("--ray-address: only with --backend ray")
-    if o["backend"] == "ray":
-        from .ray_pool import require_ray
-
-        require_ray()
-    opts = RunOptions(
-        backend=o["backend"],
-        ray_address=o["ray_address"],
-        scene_timeout=o["scene_timeout"],
-        shard=shard,
-        out=out,
-        scenes=o["scenes"],
-        workers=o["workers"],
-        threads=o["threads"],
-        progress=not o["quiet"],
-    )
+    opts = run_options(o, cfg)
+    c, out, shard = cfg.camera, opts.out, opts.shard
     banner = (
         f"stillbox-gen: {o['scenes']} scenes of {c.frames} frames at {c.width}x{c.height} "
         f"(preset {cfg.preset}, seed {cfg.seed}) -> {out}"
@@ -231,6 +209,42 @@ def generate(**o) -> None:
         )
         return
     click.echo("\n".join(["done:", *("  " + line for line in summary.lines())]), err=True)
+
+
+def run_options(o: dict, cfg: config.DatasetConfig) -> RunOptions:
+    """The generate.RunOptions of the command-line options ``o`` (ConfigError naming the flag)."""
+    from .generate import RunOptions
+
+    for flag in ("scenes", "workers"):
+        if o[flag] < 1:
+            raise ConfigError(f"--{flag}: must be at least 1, got {o[flag]}")
+    if o["threads"] < 0:
+        raise ConfigError(f"--threads: must be >= 0, got {o['threads']}")
+    c = cfg.camera
+    res = f"{c.width}" if c.width == c.height else f"{c.width}x{c.height}"
+    shard = parse_shard(o["shard"]) if o["shard"] else (0, 1)
+    timeout = o["scene_timeout"]
+    if not (timeout > 0 and math.isfinite(timeout)):
+        raise ConfigError(
+            f"--scene-timeout: must be a positive finite number of seconds, got {timeout}"
+        )
+    if o["ray_address"] and o["backend"] != "ray":
+        raise ConfigError("--ray-address: only with --backend ray")
+    if o["backend"] == "ray":
+        from .ray_pool import require_ray
+
+        require_ray()
+    return RunOptions(
+        backend=o["backend"],
+        ray_address=o["ray_address"],
+        scene_timeout=o["scene_timeout"],
+        shard=shard,
+        out=o["out"] or Path("data") / f"stillbox-{res}",
+        scenes=o["scenes"],
+        workers=o["workers"],
+        threads=o["threads"],
+        progress=not o["quiet"],
+    )
 
 
 def parse_shard(value: str) -> tuple[int, int]:
@@ -269,6 +283,8 @@ def merge(out: Path, sources: tuple[Path, ...]) -> None:
 
 
 def build_config(o: dict) -> config.DatasetConfig:
+    """The dataset config of the generate options ``o``: the preset with the flags' values
+    over it, validated (ConfigError naming the flag, or the preset file and key)."""
     cfg = config.load_preset(o["preset"])
     cam: dict = {}
     if o["res"]:
@@ -307,7 +323,12 @@ def build_config(o: dict) -> config.DatasetConfig:
                 f"--split: expected TRAIN,VAL,TEST shares, got '{o['split']}'"
             ) from None
         cfg = dataclasses.replace(cfg, split=shares)
-    config.validate(cfg)
+    given = {
+        f"{section}.{key}"
+        for section, values in (("camera", cam), ("render", render), ("materials", mats))
+        for key in values
+    }
+    config.validate(cfg, origin=config.preset_origin(o["preset"]), given=given)
     return cfg
 
 

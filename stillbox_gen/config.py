@@ -11,6 +11,9 @@ import dataclasses
 import hashlib
 import math
 import tomllib
+import types
+import typing
+from collections.abc import Callable, Collection
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
@@ -180,37 +183,52 @@ def available_presets() -> list[str]:
     )
 
 
-def load_preset(name_or_path: str) -> DatasetConfig:
-    """Load a preset by name (``scene_presets/NAME.toml``) or by path to a TOML file."""
+def _find_preset(name_or_path: str):
+    """(file, origin, name) of a preset: a path to a TOML file, or a name in scene_presets/."""
     path = Path(name_or_path)
     if path.suffix == ".toml" or path.exists():
         if not path.is_file():
             raise ConfigError(f"--preset: no such preset file '{path}'")
-        text, origin, name = path.read_text(), str(path), path.stem
-    else:
-        res = resources.files("scene_presets") / f"{name_or_path}.toml"
-        if not res.is_file():
-            raise ConfigError(
-                f"--preset: unknown preset '{name_or_path}' "
-                f"(available: {', '.join(available_presets())}, or a path to a .toml file)"
-            )
-        text, origin, name = res.read_text(), f"scene_presets/{name_or_path}.toml", name_or_path
+        return path, str(path), path.stem
+    res = resources.files("scene_presets") / f"{name_or_path}.toml"
+    if not res.is_file():
+        raise ConfigError(
+            f"--preset: unknown preset '{name_or_path}' "
+            f"(available: {', '.join(available_presets())}, or a path to a .toml file)"
+        )
+    return res, f"scene_presets/{name_or_path}.toml", name_or_path
+
+
+def preset_origin(name_or_path: str) -> str:
+    """How error messages name a preset's file (as given, or ``scene_presets/NAME.toml``)."""
+    return _find_preset(name_or_path)[1]
+
+
+def load_preset(name_or_path: str) -> DatasetConfig:
+    """Load a preset by name (``scene_presets/NAME.toml``) or by path to a TOML file; every value
+    must have its field's type (ConfigError naming the file and key)."""
+    file, origin, name = _find_preset(name_or_path)
+    where = _namer(origin)
     try:
-        data = tomllib.loads(text)
+        data = tomllib.loads(file.read_text())
     except tomllib.TOMLDecodeError as e:
-        raise ConfigError(f"{origin}: not valid TOML ({e})") from None
+        raise ConfigError(f"preset {origin}: not valid TOML ({e})") from None
     data.pop("description", None)
     sections = {}
     for key, value in data.items():
         if key not in SECTIONS:
-            raise ConfigError(f"{origin}: unknown section or key '{key}'")
+            raise ConfigError(f"preset {origin}: unknown section or key '{key}'")
+        if not isinstance(value, dict):
+            raise ConfigError(f"{where(key)} must be a table of keys ([{key}]), got {_show(value)}")
         cls = SECTIONS[key]
         names = {f.name for f in dataclasses.fields(cls)}
         for k in value:
             if k not in names:
-                raise ConfigError(f"{origin}: unknown key '{key}.{k}'")
+                raise ConfigError(f"preset {origin}: unknown key '{key}.{k}'")
         sections[key] = _section(cls, value)
-    return DatasetConfig(preset=name, **sections)
+    cfg = DatasetConfig(preset=name, **sections)
+    _check_types(cfg, where)
+    return cfg
 
 
 def _section(cls, values: dict):
@@ -260,76 +278,246 @@ def list_texture_files(directory: str) -> tuple[str, ...]:
     return tuple(good)
 
 
-def _check_range(name: str, r: tuple[float, float], lo: float = 0.0) -> None:
-    if len(r) != 2 or not (lo <= r[0] <= r[1]):
-        raise ConfigError(f"{name}: expected [min, max] with {lo} <= min <= max, got {list(r)}")
+# ---------------------------------------------------------------- validation
+
+# Config fields set by a command-line flag: their errors name the flag when the flag was given.
+FLAGS = {
+    "seed": "--seed",
+    "split": "--split",
+    "camera.width": "--res",
+    "camera.height": "--res",
+    "camera.fov_deg": "--fov",
+    "camera.focal_px": "--focal",
+    "camera.principal_point": "--principal-point",
+    "camera.frames": "--frames",
+    "camera.displacement": "--displacement",
+    "camera.rotation_noise_deg": "--rotation-noise",
+    "camera.rotation_speed_deg": "--rotation-speed",
+    "materials.photos": "--photos",
+    "materials.textures_dir": "--textures",
+    "materials.texture_files": "--textures",
+    "render.samples": "--samples",
+    "render.image_format": "--image-format",
+}
 
 
-def validate(cfg: DatasetConfig) -> None:
-    """Raise ConfigError naming the first inconsistent parameter."""
-    c, o, m, b, r = cfg.camera, cfg.objects, cfg.materials, cfg.box, cfg.render
+def _namer(origin: str | None, given: Collection[str] | None = None) -> Callable[[str], str]:
+    """``where(key)``: how an error names a config field ("section.name", or "seed"/"split").
+
+    With no preset ``origin`` a field is named by its flag (FLAGS) when it has one, else by
+    its key. With an origin, the fields in ``given`` (set on the command line) are named by
+    their flag, the others as "preset ORIGIN: section.name" (a value from the preset file).
+    """
+
+    def where(key: str) -> str:
+        from_flag = origin is None or "." not in key or key in (given or ())
+        if from_flag and key in FLAGS:
+            return f"{FLAGS[key]}:"
+        return f"preset {origin}: {key}" if origin is not None else f"{key}:"
+
+    return where
+
+
+def _show(value) -> str:
+    """A value as in the preset file: strings quoted, booleans lowercase, sequences in [ ]."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, list | tuple):
+        return f"[{', '.join(_show(v) for v in value)}]"
+    return repr(value)
+
+
+_NOUNS = {bool: "true or false", int: "an integer", float: "a finite number", str: "a string"}
+_PLURALS = {bool: "booleans", int: "integers", float: "finite numbers", str: "strings"}
+
+
+def _fits(value, hint) -> bool:
+    if hint is bool:
+        return isinstance(value, bool)
+    if isinstance(value, bool):  # bool is an int subclass, but not an integer here
+        return False
+    if hint is int:
+        return isinstance(value, int)
+    if hint is float:
+        return isinstance(value, int | float) and math.isfinite(value)
+    return isinstance(value, hint)
+
+
+def type_problem(value, hint) -> str | None:
+    """Why ``value`` does not fit a config field annotated ``hint`` (None when it does).
+
+    Numbers must be finite (floats accept integers), integers and booleans are distinct,
+    ``tuple[float, float]`` is a list of exactly two numbers, ``tuple[str, ...]`` of strings,
+    ``X | None`` takes None or an X.
+    """
+    if typing.get_origin(hint) in (types.UnionType, typing.Union):
+        args = [a for a in typing.get_args(hint) if a is not type(None)]
+        if value is None:
+            return None
+        hint = args[0]
+    if typing.get_origin(hint) is tuple:
+        args = typing.get_args(hint)
+        if args[-1] is Ellipsis:
+            item, n, wanted = args[0], None, f"a list of {_PLURALS[args[0]]}"
+        else:
+            item, n, wanted = args[0], len(args), f"a list of {len(args)} {_PLURALS[args[0]]}"
+        ok = isinstance(value, list | tuple) and (n is None or len(value) == n)
+        if ok and all(_fits(v, item) for v in value):
+            return None
+        return f"must be {wanted}, got {_show(value)}"
+    return None if _fits(value, hint) else f"must be {_NOUNS[hint]}, got {_show(value)}"
+
+
+def _check_types(cfg: DatasetConfig, where: Callable[[str], str]) -> None:
+    for sec, cls in SECTIONS.items():
+        values = getattr(cfg, sec)
+        for name, hint in typing.get_type_hints(cls).items():
+            problem = type_problem(getattr(values, name), hint)
+            if problem:
+                raise ConfigError(f"{where(f'{sec}.{name}')} {problem}")
+    if type_problem(cfg.seed, int) or cfg.seed < 0:  # numpy's SeedSequence: any integer >= 0
+        raise ConfigError(f"{where('seed')} must be a non-negative integer, got {_show(cfg.seed)}")
+    problem = type_problem(cfg.split, tuple[float, float, float])
+    if problem:
+        raise ConfigError(f"{where('split')} {problem}")
+
+
+def _check_range(
+    where: Callable[[str], str],
+    key: str,
+    r: tuple[float, float],
+    lo: float = 0.0,
+    hi: float = math.inf,
+) -> None:
+    """[min, max] with lo <= min <= max <= hi (metres unless the key says otherwise)."""
+    if not lo <= r[0] <= r[1] <= hi:
+        limits = f"{lo:g} <= min <= max" + (f" <= {hi:g}" if hi < math.inf else "")
+        raise ConfigError(f"{where(key)} must be [min, max] with {limits}, got {_show(r)}")
+
+
+def validate(
+    cfg: DatasetConfig, origin: str | None = None, given: Collection[str] | None = None
+) -> None:
+    """Raise ConfigError naming the first bad parameter: wrong type, not finite, out of range,
+    or inconsistent with another. ``origin`` (the preset's file, see preset_origin) and
+    ``given`` (keys "section.name" set by command-line flags) choose how the message names it:
+    the flag, or the preset file and key (see _namer)."""
+    where = _namer(origin, given)
+    _check_types(cfg, where)
+    c, o, m, b, r, lc = cfg.camera, cfg.objects, cfg.materials, cfg.box, cfg.render, cfg.light
     if c.width <= 0 or c.height <= 0:
-        raise ConfigError(f"--res: width and height must be positive, got {c.width}x{c.height}")
+        key = "camera.width" if c.width <= 0 else "camera.height"
+        raise ConfigError(f"{where(key)} must be positive (pixels), got {c.width}x{c.height}")
     if c.focal_px is None and not 0 < c.fov_deg < 180:
-        raise ConfigError(f"--fov: must be in (0, 180) degrees, got {c.fov_deg}")
+        raise ConfigError(f"{where('camera.fov_deg')} must be in (0, 180) degrees, got {c.fov_deg}")
     if c.focal_px is not None and c.focal_px <= 0:
-        raise ConfigError(f"--focal: must be positive (pixels), got {c.focal_px}")
+        raise ConfigError(f"{where('camera.focal_px')} must be positive (pixels), got {c.focal_px}")
     if c.principal_point is not None:
         cx, cy = c.principal_point
         if not (-0.5 <= cx <= c.width - 0.5 and -0.5 <= cy <= c.height - 0.5):
             raise ConfigError(
-                f"--principal-point: ({cx}, {cy}) lies outside the {c.width}x{c.height} image"
+                f"{where('camera.principal_point')} ({cx}, {cy}) lies outside the "
+                f"{c.width}x{c.height} image"
             )
     if c.frames < 2:
-        raise ConfigError(f"--frames: need at least 2 frames per scene, got {c.frames}")
+        raise ConfigError(
+            f"{where('camera.frames')} must be at least 2 frames per scene, got {c.frames}"
+        )
     if not c.displacement > 0:
-        raise ConfigError(f"--displacement: must be positive (metres/frame), got {c.displacement}")
+        raise ConfigError(
+            f"{where('camera.displacement')} must be positive (metres/frame), got {c.displacement}"
+        )
     if not c.time_step > 0:
-        raise ConfigError(f"camera.time_step: must be positive (seconds), got {c.time_step}")
-    if c.rotation_noise_deg < 0 or c.rotation_speed_deg < 0:
-        raise ConfigError("--rotation-noise / --rotation-speed: must be >= 0 degrees")
+        raise ConfigError(
+            f"{where('camera.time_step')} must be positive (seconds), got {c.time_step}"
+        )
+    for key in ("rotation_noise_deg", "rotation_speed_deg"):
+        if getattr(c, key) < 0:
+            raise ConfigError(
+                f"{where(f'camera.{key}')} must be >= 0 degrees, got {getattr(c, key)}"
+            )
     if o.count < 0:
-        raise ConfigError(f"objects.count: must be >= 0, got {o.count}")
+        raise ConfigError(f"{where('objects.count')} must be >= 0, got {o.count}")
     bad = [k for k in o.kinds if k not in PRIMITIVE_KINDS]
     if bad or not o.kinds:
-        raise ConfigError(f"objects.kinds: unknown {bad}; choose from {list(PRIMITIVE_KINDS)}")
-    _check_range("objects.size_range", o.size_range)
-    _check_range("objects.distance_range", o.distance_range)
+        raise ConfigError(
+            f"{where('objects.kinds')} must be a non-empty list of {list(PRIMITIVE_KINDS)}, "
+            f"got {_show(o.kinds)}"
+        )
+    _check_range(where, "objects.size_range", o.size_range)
+    _check_range(where, "objects.distance_range", o.distance_range)
     if o.distance_law not in DISTANCE_LAWS:
         raise ConfigError(
-            f"objects.distance_law: must be one of {DISTANCE_LAWS}, got {o.distance_law!r}"
+            f"{where('objects.distance_law')} must be one of {DISTANCE_LAWS}, "
+            f"got {o.distance_law!r}"
+        )
+    if o.path_clearance < 0:
+        raise ConfigError(
+            f"{where('objects.path_clearance')} must be >= 0 metres, got {o.path_clearance}"
         )
     bad = [p for p in m.patterns if p not in PATTERNS]
     if bad or not m.patterns:
-        raise ConfigError(f"materials.patterns: unknown {bad}; choose from {list(PATTERNS)}")
+        raise ConfigError(
+            f"{where('materials.patterns')} must be a non-empty list of {list(PATTERNS)}, "
+            f"got {_show(m.patterns)}"
+        )
     if m.photos not in PHOTO_SOURCES:
-        raise ConfigError(f"--photos: must be one of {PHOTO_SOURCES}, got {m.photos!r}")
+        raise ConfigError(
+            f"{where('materials.photos')} must be one of {PHOTO_SOURCES}, got {m.photos!r}"
+        )
     for name in ("texture_ratio", "plain_ratio", "glossy_ratio", "mirror_ratio"):
         if not 0 <= getattr(m, name) <= 1:
-            raise ConfigError(f"materials.{name}: must be in [0, 1]")
+            raise ConfigError(
+                f"{where(f'materials.{name}')} must be in [0, 1], got {getattr(m, name)}"
+            )
     if not 0 <= o.behind_fraction <= 1:
-        raise ConfigError("objects.behind_fraction: must be in [0, 1]")
-    _check_range("box.half_extent_range", b.half_extent_range)
+        raise ConfigError(
+            f"{where('objects.behind_fraction')} must be in [0, 1], got {o.behind_fraction}"
+        )
+    _check_range(where, "box.half_extent_range", b.half_extent_range)
+    if b.offset_max < 0:
+        raise ConfigError(f"{where('box.offset_max')} must be >= 0 metres, got {b.offset_max}")
     path_len = c.displacement * (c.frames - 1)
     inner = b.half_extent_range[0] - b.offset_max
     if inner <= path_len + 1.0:
+        given = given or ()
+        key = next(
+            (k for k in ("camera.displacement", "camera.frames") if k in given),
+            "box.half_extent_range",
+        )
         raise ConfigError(
-            f"box.half_extent_range: smallest box ({b.half_extent_range[0]} m, offset "
-            f"{b.offset_max} m) does not contain the {path_len:.2f} m camera path"
+            f"{where(key)} the camera path ({path_len:.2f} m) does not fit in the smallest box "
+            f"(box.half_extent_range min {b.half_extent_range[0]} m, offset_max {b.offset_max} m)"
+        )
+    _check_range(where, "light.sun_strength_range", lc.sun_strength_range)
+    _check_range(where, "light.sun_elevation_range_deg", lc.sun_elevation_range_deg, -90, 90)
+    _check_range(where, "light.ambient_strength_range", lc.ambient_strength_range)
+    if not 0 <= lc.colour_jitter <= 1:
+        raise ConfigError(
+            f"{where('light.colour_jitter')} must be in [0, 1], got {lc.colour_jitter}"
         )
     if r.shading not in SHADINGS:
-        raise ConfigError(f"render.shading: must be one of {SHADINGS}, got {r.shading!r}")
+        raise ConfigError(f"{where('render.shading')} must be one of {SHADINGS}, got {r.shading!r}")
     if r.denoise_quality not in DENOISE_QUALITIES:
         raise ConfigError(
-            f"render.denoise_quality: must be one of {DENOISE_QUALITIES}, got {r.denoise_quality!r}"
+            f"{where('render.denoise_quality')} must be one of {DENOISE_QUALITIES}, "
+            f"got {r.denoise_quality!r}"
         )
     if r.max_bounces < 0:
-        raise ConfigError(f"render.max_bounces: must be >= 0, got {r.max_bounces}")
+        raise ConfigError(f"{where('render.max_bounces')} must be >= 0, got {r.max_bounces}")
     if r.samples < 1:
-        raise ConfigError(f"render.samples: must be >= 1, got {r.samples}")
+        raise ConfigError(f"{where('render.samples')} must be >= 1, got {r.samples}")
     if r.image_format not in IMAGE_FORMATS:
-        raise ConfigError(f"--image-format: must be one of {IMAGE_FORMATS}")
+        raise ConfigError(
+            f"{where('render.image_format')} must be one of {IMAGE_FORMATS}, got {r.image_format!r}"
+        )
     if not 0 < r.near_clip < r.max_distance:
-        raise ConfigError("render.near_clip / max_distance: need 0 < near_clip < max_distance")
-    if len(cfg.split) != 3 or min(cfg.split) < 0 or not math.isclose(sum(cfg.split), 1.0):
-        raise ConfigError(f"--split: three non-negative shares summing to 1, got {cfg.split}")
+        raise ConfigError(
+            f"{where('render.near_clip')} must be in (0, render.max_distance) metres, "
+            f"got {r.near_clip} and max_distance {r.max_distance}"
+        )
+    if min(cfg.split) < 0 or not math.isclose(sum(cfg.split), 1.0):
+        raise ConfigError(
+            f"{where('split')} must be three non-negative shares summing to 1, "
+            f"got {_show(cfg.split)}"
+        )

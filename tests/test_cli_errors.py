@@ -26,6 +26,10 @@ from conftest import assert_user_error, run_cli
         (["--image-format", "gif"], ["--image-format"]),
         (["--textures", "/no/such/folder"], ["--textures", "/no/such/folder"]),
         (["--no-such-flag"], ["--no-such-flag"]),
+        (["--focal", "inf"], ["--focal: must be a finite number, got inf"]),
+        (["--rotation-noise", "nan"], ["--rotation-noise: must be a finite number, got nan"]),
+        (["--seed", "-1"], ["--seed: must be a non-negative integer, got -1"]),
+        (["--scene-timeout", "nan"], ["--scene-timeout"]),
     ],
 )
 def test_bad_flag_is_a_one_line_error_and_writes_nothing(tmp_path, args, words):
@@ -49,6 +53,22 @@ def test_bad_preset_file_names_file_and_key(tmp_path):
     preset.write_text("[camera]\nfov = 60\n")
     proc = run_cli("--preset", preset, "--out", tmp_path / "out", check=False)
     assert_user_error(proc, "mine.toml", "camera.fov")
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("[objects]\ncount = 2.5\n", "objects.count must be an integer, got 2.5"),
+        ("[objects]\nsize_range = [-1, 3]\n", "objects.size_range must be [min, max]"),
+    ],
+)
+def test_bad_preset_value_names_file_and_key_and_writes_nothing(tmp_path, text, message):
+    preset = tmp_path / "x.toml"
+    preset.write_text(text)
+    out = tmp_path / "out"
+    proc = run_cli("--preset", preset, "--out", out, check=False)
+    assert_user_error(proc, f"preset {preset}: {message}")
+    assert not out.exists()
 
 
 def test_output_path_that_is_a_file_is_refused_and_kept(tmp_path):

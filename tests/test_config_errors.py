@@ -1,0 +1,184 @@
+"""Bad generator input checked in-process (fast): non-finite numbers, seeds, preset value types
+and ranges, undecodable texture files. Each is a ConfigError naming the flag or the preset file and
+key, raised before anything is written; tests/test_cli_errors.py checks the command line end to
+end."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import typing
+
+import pytest
+
+from stillbox_gen import cli, config
+from stillbox_gen.config import ConfigError
+
+
+def build(*args) -> config.DatasetConfig:
+    """cli.build_config of ``stillbox-gen generate ARGS`` (the options click parses)."""
+    ctx = cli.generate.make_context("generate", [str(a) for a in args])
+    return cli.build_config(ctx.params)
+
+
+def preset(tmp_path, text: str) -> str:
+    path = tmp_path / "x.toml"
+    path.write_text(text)
+    return str(path)
+
+
+def float_fields() -> list[tuple[str, str]]:
+    """(section, field) of every number-valued config field, tuples of numbers included."""
+    found = []
+    for sec, cls in config.SECTIONS.items():
+        for name, hint in typing.get_type_hints(cls).items():
+            if "float" in str(hint) or hint is float:
+                found.append((sec, name))
+    return found
+
+
+# ---------------------------------------------------------------- non-finite numbers
+
+
+@pytest.mark.parametrize(
+    ("args", "line"),
+    [
+        (["--focal", "inf"], "--focal: must be a finite number, got inf"),
+        (["--fov", "nan"], "--fov: must be a finite number, got nan"),
+        (["--rotation-noise", "nan"], "--rotation-noise: must be a finite number, got nan"),
+        (["--rotation-speed", "-inf"], "--rotation-speed: must be a finite number, got -inf"),
+        (["--displacement", "inf"], "--displacement: must be a finite number, got inf"),
+        (["--principal-point", "nan,3"], "--principal-point: must be a list of 2 finite"),
+        (["--split", "0.8,nan,0.1"], "--split: must be a list of 3 finite numbers"),
+    ],
+)
+def test_non_finite_flag_names_the_flag(args, line):
+    with pytest.raises(ConfigError) as e:
+        build(*args)
+    assert str(e.value).startswith(line), str(e.value)
+
+
+@pytest.mark.parametrize("value", [math.nan, math.inf, -math.inf])
+@pytest.mark.parametrize(("section", "name"), float_fields())
+def test_every_float_field_rejects_non_finite_values(section, name, value):
+    """Every float of every section (ranges and principal point included), whatever its
+    other limits, names its key (or its flag) when not finite."""
+    cfg = config.load_preset("stillbox")
+    old = getattr(getattr(cfg, section), name)
+    bad = tuple(value for _ in old) if isinstance(old, tuple) else value
+    if name == "principal_point":
+        bad = (value, 3.0)
+    with pytest.raises(ConfigError) as e:
+        config.validate(config.replace(cfg, **{section: {name: bad}}))
+    flag = config.FLAGS.get(f"{section}.{name}")
+    assert str(e.value).startswith(f"{flag or f'{section}.{name}'}:"), str(e.value)
+    assert "finite" in str(e.value), str(e.value)
+
+
+def test_non_finite_scene_timeout_is_refused():
+    cfg = build()
+    for value in ("nan", "inf"):
+        ctx = cli.generate.make_context("generate", ["--scene-timeout", value])
+        with pytest.raises(ConfigError, match=f"^--scene-timeout: .* got {value}$"):
+            cli.run_options(ctx.params, cfg)
+
+
+# ---------------------------------------------------------------- seeds
+
+
+@pytest.mark.parametrize("seed", ["-1", "-123456789"])
+def test_negative_seed_is_refused(seed):
+    with pytest.raises(ConfigError) as e:
+        build("--seed", seed)
+    assert str(e.value) == f"--seed: must be a non-negative integer, got {seed}"
+
+
+def test_large_seeds_are_accepted():
+    """SeedSequence takes any non-negative integer."""
+    assert build("--seed", 2**70).seed == 2**70
+
+
+# ---------------------------------------------------------------- preset value types
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ('[camera]\nframes = "ten"', "camera.frames must be an integer, got 'ten'"),
+        ("[camera]\nframes = 10.0", "camera.frames must be an integer, got 10.0"),
+        ("[camera]\nframes = true", "camera.frames must be an integer, got true"),
+        ("camera = 5", "camera must be a table of keys ([camera]), got 5"),
+        ('camera = "wide"', "camera must be a table of keys ([camera]), got 'wide'"),
+        ("[objects]\ncount = 2.5", "objects.count must be an integer, got 2.5"),
+        ("[objects]\ncount = false", "objects.count must be an integer, got false"),
+        ('[camera]\nfov_deg = "90"', "camera.fov_deg must be a finite number, got '90'"),
+        ("[camera]\nfov_deg = nan", "camera.fov_deg must be a finite number, got nan"),
+        ("[camera]\nfov_deg = true", "camera.fov_deg must be a finite number, got true"),
+        ("[camera]\nrandom_orientation = 1", "camera.random_orientation must be true or false"),
+        ("[camera]\nprincipal_point = [1, 2, 3]", "camera.principal_point must be a list of 2"),
+        ('[objects]\nkinds = "cube"', "objects.kinds must be a list of strings, got 'cube'"),
+        ("[objects]\nkinds = [1, 2]", "objects.kinds must be a list of strings, got [1, 2]"),
+        ("[objects]\nsize_range = 3.0", "objects.size_range must be a list of 2 finite numbers"),
+        ("[objects]\nsize_range = [1.0]", "objects.size_range must be a list of 2 finite"),
+        ("[objects]\nsize_range = [1.0, inf]", "objects.size_range must be a list of 2 finite"),
+        ('[objects]\nsize_range = [1, "3"]', "objects.size_range must be a list of 2 finite"),
+        ("[light]\ncolour_jitter = -inf", "light.colour_jitter must be a finite number, got -inf"),
+        ("[render]\nshading = 3", "render.shading must be a string, got 3"),
+        ("[render]\nsamples = 4.0", "render.samples must be an integer, got 4.0"),
+        ('[render]\ndenoise = "no"', "render.denoise must be true or false, got 'no'"),
+        ("[materials]\ntexture_ratio = [0.5]", "materials.texture_ratio must be a finite number"),
+    ],
+)
+def test_preset_value_of_wrong_type_names_file_and_key(tmp_path, text, message):
+    path = preset(tmp_path, text)
+    with pytest.raises(ConfigError) as e:
+        config.load_preset(path)
+    assert str(e.value).startswith(f"preset {path}: {message}"), str(e.value)
+    assert "\n" not in str(e.value)
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("[objects]\nsize_range = [-1.0, 3.0]", "objects.size_range must be [min, max]"),
+        ("[objects]\nsize_range = [5.0, 3.0]", "objects.size_range must be [min, max]"),
+        ("[objects]\ndistance_range = [-2.0, 3.0]", "objects.distance_range must be [min, max]"),
+        ("[box]\nhalf_extent_range = [80.0, 60.0]", "box.half_extent_range must be [min, max]"),
+        ("[light]\nsun_strength_range = [-1.0, 2.0]", "light.sun_strength_range must be"),
+        ("[light]\nambient_strength_range = [2.0, 1.0]", "light.ambient_strength_range must be"),
+        ("[light]\nsun_elevation_range_deg = [10.0, 100.0]", "light.sun_elevation_range_deg"),
+        ("[light]\ncolour_jitter = 1.5", "light.colour_jitter must be in [0, 1]"),
+        ("[box]\noffset_max = -1.0", "box.offset_max must be >= 0"),
+        ("[objects]\npath_clearance = -0.1", "objects.path_clearance must be >= 0"),
+        ("[objects]\ncount = -3", "objects.count must be >= 0, got -3"),
+        ("[camera]\nfov_deg = 0.0", "camera.fov_deg must be in (0, 180) degrees, got 0.0"),
+        ("[camera]\nframes = 1", "camera.frames must be at least 2"),
+        ("[render]\nsamples = 0", "render.samples must be >= 1, got 0"),
+        ("[materials]\nglossy_ratio = 2.0", "materials.glossy_ratio must be in [0, 1]"),
+        ("[camera]\nrotation_noise_deg = -1.0", "camera.rotation_noise_deg must be >= 0"),
+    ],
+)
+def test_preset_value_out_of_range_names_file_and_key(tmp_path, text, message):
+    """Range and consistency errors of values the preset set name the file and the key."""
+    path = preset(tmp_path, text)
+    with pytest.raises(ConfigError) as e:
+        build("--preset", path)
+    assert str(e.value).startswith(f"preset {path}: {message}"), str(e.value)
+
+
+def test_flag_overriding_a_preset_value_is_named_as_the_flag(tmp_path):
+    """The same bad value from a flag names the flag, not the preset that it overrode."""
+    path = preset(tmp_path, "[camera]\nframes = 12\n")
+    with pytest.raises(
+        ConfigError, match=r"^--frames: must be at least 2 frames per scene, got 1$"
+    ):
+        build("--preset", path, "--frames", 1)
+    with pytest.raises(ConfigError, match=r"^--displacement: the camera path \(99.00 m\)"):
+        build("--preset", path, "--displacement", 9)
+
+
+def test_valid_preset_file_still_loads(tmp_path):
+    path = preset(tmp_path, "[camera]\nfov_deg = 60\nframes = 12\n[objects]\ncount = 0\n")
+    cfg = build("--preset", path)
+    assert cfg.camera.fov_deg == 60 and cfg.camera.frames == 12 and cfg.objects.count == 0
+    assert dataclasses.asdict(config.load_preset("stillbox")) == dataclasses.asdict(build())
