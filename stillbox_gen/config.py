@@ -252,8 +252,12 @@ def replace(cfg: DatasetConfig, **sections: dict) -> DatasetConfig:
 
 
 def list_texture_files(directory: str) -> tuple[str, ...]:
-    """Sorted names of readable images in a folder; ConfigError when there are none."""
+    """Sorted names of the images in a folder (files whose contents OpenCV recognises as an
+    image, others are ignored); each is decoded once here, and ConfigError names the first
+    one that cannot be decoded whole (e.g. a cut-off JPEG), or says there are none."""
     import cv2
+
+    from . import photos
 
     d = Path(directory)
     if not d.is_dir():
@@ -269,6 +273,10 @@ def list_texture_files(directory: str) -> tuple[str, ...]:
         except cv2.error:
             ok = False
         if ok:
+            try:
+                photos.check_user(d / n)
+            except ValueError as e:
+                raise ConfigError(f"--textures: {e}") from None
             good.append(n)
     if not good:
         raise ConfigError(

@@ -16,8 +16,10 @@ No bpy import here: the folder is found through the installed package's location
 
 from __future__ import annotations
 
+import contextlib
 import importlib.util
 import os
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -115,14 +117,53 @@ def srgb_to_linear(srgb8: np.ndarray) -> np.ndarray:
     return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4).astype(np.float32)
 
 
-def load_user(path: Path) -> np.ndarray:
-    """A photo from a --textures folder as linear RGB (H, W, 3), top row first."""
+def decode_user(path: Path) -> np.ndarray:
+    """A photo file decoded whole to 8-bit BGR (H, W, 3); ValueError naming the file when it
+    cannot be read or decoded.
+
+    Decoded from memory: ``cv2.imread`` pads a JPEG whose data is cut off with grey (libjpeg
+    only prints a warning), ``cv2.imdecode`` returns nothing for it, as for any cut PNG, WebP,
+    BMP or TIFF.
+    """
     import cv2
 
-    bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    try:
+        data = np.fromfile(path, np.uint8)
+    except OSError as e:
+        raise ValueError(f"'{path}' cannot be read ({e.strerror})") from None
+    try:
+        bgr = cv2.imdecode(data, cv2.IMREAD_COLOR) if data.size else None
+    except cv2.error:
+        bgr = None
     if bgr is None:
-        raise FileNotFoundError(f"cannot read texture {path}")
-    return srgb_to_linear(bgr[..., ::-1])
+        raise ValueError(f"'{path}' cannot be decoded (truncated or corrupt data)")
+    return bgr
+
+
+@contextlib.contextmanager
+def quiet_stderr():
+    """File descriptor 2 goes to /dev/null inside the block: the image libraries behind cv2
+    print their own lines for a bad file ("Premature end of JPEG file", "libpng error: ...")."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    try:
+        with open(os.devnull, "wb") as null:
+            os.dup2(null.fileno(), 2)
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+
+
+def check_user(path: Path) -> None:
+    """Decode a photo once, silently: ValueError naming the file when it is unusable."""
+    with quiet_stderr():
+        decode_user(path)
+
+
+def load_user(path: Path) -> np.ndarray:
+    """A photo from a --textures folder as linear RGB (H, W, 3), top row first."""
+    return srgb_to_linear(decode_user(path)[..., ::-1])
 
 
 def load_bundled(name: str) -> np.ndarray:

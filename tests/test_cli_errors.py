@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 
+import cv2
+import numpy as np
 import pytest
 from conftest import assert_user_error, run_cli
 
@@ -69,6 +71,19 @@ def test_bad_preset_value_names_file_and_key_and_writes_nothing(tmp_path, text, 
     proc = run_cli("--preset", preset, "--out", out, check=False)
     assert_user_error(proc, f"preset {preset}: {message}")
     assert not out.exists()
+
+
+def test_truncated_texture_file_is_refused(tmp_path):
+    """A JPEG whose data is cut off (valid header) is named, with no decoder noise."""
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    rng = np.random.default_rng(0)
+    ok, jpeg = cv2.imencode(".jpg", cv2.resize(rng.integers(0, 256, (8, 8, 3), np.uint8), (64, 64)))
+    (photos / "whole.jpg").write_bytes(jpeg.tobytes())
+    (photos / "cut.jpg").write_bytes(jpeg.tobytes()[: len(jpeg) // 2])
+    proc = run_cli("--textures", photos, "--out", tmp_path / "out", check=False)
+    assert_user_error(proc, f"--textures: '{photos / 'cut.jpg'}' cannot be decoded")
+    assert not (tmp_path / "out").exists()
 
 
 def test_output_path_that_is_a_file_is_refused_and_kept(tmp_path):

@@ -9,6 +9,8 @@ import dataclasses
 import math
 import typing
 
+import cv2
+import numpy as np
 import pytest
 
 from stillbox_gen import cli, config
@@ -182,3 +184,29 @@ def test_valid_preset_file_still_loads(tmp_path):
     cfg = build("--preset", path)
     assert cfg.camera.fov_deg == 60 and cfg.camera.frames == 12 and cfg.objects.count == 0
     assert dataclasses.asdict(config.load_preset("stillbox")) == dataclasses.asdict(build())
+
+
+# ---------------------------------------------------------------- texture files
+
+
+def _photo(path) -> bytes:
+    rng = np.random.default_rng(1)
+    img = cv2.resize(rng.integers(0, 256, (8, 8, 3), np.uint8), (64, 64))
+    ok, buf = cv2.imencode(path.suffix, img)
+    assert ok
+    return buf.tobytes()
+
+
+@pytest.mark.parametrize("name", ["cut.jpg", "cut.png", "cut.webp", "cut.bmp"])
+def test_truncated_texture_file_is_named(tmp_path, capfd, name):
+    """A file with a valid header but its data cut off decodes partly (cv2.imread pads a cut
+    JPEG with grey): refused up front, naming the file, with no decoder noise on stderr."""
+    good, cut = tmp_path / "good.png", tmp_path / name
+    good.write_bytes(_photo(good))
+    cut.write_bytes(_photo(cut)[: len(_photo(cut)) // 2])
+    with pytest.raises(ConfigError) as e:
+        config.list_texture_files(str(tmp_path))
+    assert str(e.value) == f"--textures: '{cut}' cannot be decoded (truncated or corrupt data)"
+    assert capfd.readouterr().err == ""
+    cut.write_bytes(_photo(cut))  # the whole file is accepted
+    assert config.list_texture_files(str(tmp_path)) == tuple(sorted(["good.png", name]))
