@@ -9,16 +9,22 @@ Layout under the dataset root::
         RGB_<s>_<f>.png     8-bit sRGB frames, s = scene index in the chunk, f = frame
         depth_<s>_<f>.exr   float32 planar depth in metres, single channel "Y", ZIP compressed
         .records/<s>.json   per-scene record; its presence marks the scene complete
+
+Every path read from a dataset (a record's file names, the manifest's paths) goes through
+:func:`resolve_inside`, so a crafted dataset cannot make a reader open or write a file outside it.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import shutil
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 
 import numpy as np
+
+from .config import ConfigError
 
 CHUNK_SIZE = 200
 FORMAT_VERSION = 1
@@ -51,8 +57,78 @@ def depth_name(local: int, frame: int, ext: str = "exr") -> str:
     return f"depth_{local:04d}_{frame:02d}.{ext}"
 
 
+RECORDS_DIR = ".records"
+METADATA_JSON = "metadata.json"
+
+
+def record_name(index: int) -> str:
+    """``<chunk>/.records/<s>.json``, relative to the dataset root."""
+    return f"{chunk_name(index)}/{RECORDS_DIR}/{local_index(index):04d}.json"
+
+
 def record_path(root: Path, index: int) -> Path:
-    return root / chunk_name(index) / ".records" / f"{local_index(index):04d}.json"
+    return Path(root) / record_name(index)
+
+
+# Files ``stillbox-gen stats`` writes into the dataset root by default (not part of the format)
+STATS_FILES = ("stats.json", "stats.png")
+
+
+def scene_files(record: dict) -> list[str]:
+    """Every file name of a scene in its chunk folder (frames, depth, legacy copies), sorted."""
+    names = [*record["rgb"], *record["depth_exr"], *record["imgs"], *record["depth"]]
+    return sorted(set(names))
+
+
+# ---------------------------------------------------------------- paths read from a dataset
+
+
+class UnsafePathError(ConfigError):
+    """A path read from a dataset that would lead outside the dataset folder."""
+
+
+def resolve_inside(root: Path, relpath: str, what: str, folder: str = "") -> Path:
+    """``root / folder / relpath``, checked to stay inside ``root`` before anything is opened.
+
+    ``relpath`` comes from a dataset file (a record's file name, relative to its chunk
+    ``folder``; a manifest path, relative to the root): it must be a relative path without
+    ``..`` components, and no symlink on its way may lead outside ``root`` (links are read, no
+    file is opened). Raises UnsafePathError starting with ``what`` (the record or row it comes
+    from).
+    """
+    root = Path(root)
+    if not isinstance(relpath, str) or not relpath or "\x00" in relpath:
+        raise UnsafePathError(f"{what}: {relpath!r} is not a file name")
+    pure = PurePosixPath(relpath)
+    if pure.is_absolute():
+        raise UnsafePathError(f"{what}: absolute path '{relpath}' leaves the dataset folder")
+    if ".." in pure.parts:
+        raise UnsafePathError(f"{what}: path '{relpath}' has '..' and leaves the dataset folder")
+    path = root / folder / relpath
+    try:  # reads symlinks, opens nothing
+        real, base = Path(os.path.realpath(path)), Path(os.path.realpath(root))
+    except (OSError, RuntimeError) as e:  # a symlink loop
+        raise UnsafePathError(f"{what}: cannot resolve '{relpath}' ({e})") from None
+    if not real.is_relative_to(base):
+        raise UnsafePathError(
+            f"{what}: '{relpath}' leads through a symlink to '{real}', outside the dataset folder"
+        )
+    return path
+
+
+# ---------------------------------------------------------------- checksums
+
+
+def file_sha256(path: Path) -> str:
+    """SHA-256 hex digest of a file's bytes."""
+    with open(path, "rb") as f:
+        return hashlib.file_digest(f, "sha256").hexdigest()
+
+
+def scene_checksums(folder: Path, record: dict) -> dict[str, str]:
+    """{file name: SHA-256} of every file of a scene (:func:`scene_files`) found in ``folder``;
+    stored in the record as ``sha256``."""
+    return {name: file_sha256(Path(folder) / name) for name in scene_files(record)}
 
 
 # ---------------------------------------------------------------- atomic writes
@@ -121,7 +197,8 @@ def linear_to_srgb8(rgb: np.ndarray) -> np.ndarray:
 def scene_record(spec: dict, image_format: str, legacy: bool) -> dict:
     """The metadata.json entry of one scene, built from its SceneSpec dict.
 
-    Original StillBox keys first (imgs, depth, speed, time_step, length, orientation), then ours.
+    Original StillBox keys first (imgs, depth, speed, time_step, length, orientation), then ours;
+    ``sha256`` (:func:`scene_checksums`) is added last, once the files are written.
     """
     cam = spec["camera"]
     local, n = local_index(spec["index"]), len(cam["cam2world"])

@@ -208,12 +208,14 @@ def _tmp_dir(out: Path, index: int) -> Path:
 
 
 def commit_scene(out: Path, spec: dict, cfg: DatasetConfig) -> dict:
-    """Move a rendered scene into its chunk folder, then write its record (the completion mark)."""
+    """Move a rendered scene into its chunk folder, then write its record (the completion mark)
+    with the SHA-256 of every file of the scene."""
     tmp = _tmp_dir(out, spec["index"])
     chunk_dir = tmp.parent
+    record = formats.scene_record(spec, cfg.render.image_format, cfg.render.legacy)
+    record["sha256"] = formats.scene_checksums(tmp, record)
     for f in sorted(tmp.iterdir()):
         os.replace(f, chunk_dir / f.name)
-    record = formats.scene_record(spec, cfg.render.image_format, cfg.render.legacy)
     rec_path = formats.record_path(out, spec["index"])
     rec_path.parent.mkdir(exist_ok=True)
     formats.atomic_write_json(rec_path, record)

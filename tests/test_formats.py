@@ -149,6 +149,53 @@ def test_scene_record_matches_schema(spec, legacy):
         jsonschema.validate(rec, schema.SCENE_RECORD)
 
 
+# ---------------------------------------------------------------- paths and checksums
+
+
+def test_resolve_inside_refuses_paths_leaving_the_root(tmp_path):
+    """Absolute paths, '..' components and symlinks out of the root are refused, naming the
+    record; names inside the root (symlinks within it too) are returned unresolved."""
+    root = tmp_path / "root"
+    (root / "0").mkdir(parents=True)
+    (tmp_path / "secret").write_text("x")
+    (root / "0" / "in.png").write_text("x")
+    os.symlink(tmp_path / "secret", root / "0" / "out.png")
+    os.symlink("in.png", root / "0" / "link.png")
+    os.symlink(tmp_path, root / "1")
+    assert formats.resolve_inside(root, "0/in.png", "w") == root / "0" / "in.png"
+    assert formats.resolve_inside(root, "0/link.png", "w") == root / "0" / "link.png"
+    assert formats.resolve_inside(root, "in.png", "w", folder="0") == root / "0" / "in.png"
+    with pytest.raises(formats.UnsafePathError, match="absolute path"):  # not root/0/<abs>
+        formats.resolve_inside(root, str(tmp_path / "secret"), "w", folder="0")
+    bad = {
+        "../secret": "has '..'",
+        "0/../0/in.png": "has '..'",
+        str(tmp_path / "secret"): "absolute path",
+        "0/out.png": "leads through a symlink",
+        "1/secret": "leads through a symlink",
+        "": "is not a file name",
+    }
+    for relpath, words in bad.items():
+        with pytest.raises(formats.UnsafePathError, match="^0/metadata.json: scene 3: ") as e:
+            formats.resolve_inside(root, relpath, "0/metadata.json: scene 3")
+        assert words in str(e.value)
+
+
+def test_scene_checksums_cover_every_scene_file(tmp_path, spec):
+    """scene_checksums hashes every file a record names (legacy copies too), by SHA-256."""
+    import hashlib
+
+    rec = formats.scene_record(spec, "png", legacy=True)
+    names = formats.scene_files(rec)
+    assert len(names) == 40 and names == sorted(
+        set(rec["rgb"] + rec["imgs"] + rec["depth"] + rec["depth_exr"])
+    )
+    for i, name in enumerate(names):
+        (tmp_path / name).write_bytes(bytes([i]))
+    sums = formats.scene_checksums(tmp_path, rec)
+    assert sums == {n: hashlib.sha256(bytes([i])).hexdigest() for i, n in enumerate(names)}
+
+
 # ---------------------------------------------------------------- manifest
 
 
