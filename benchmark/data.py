@@ -28,7 +28,12 @@ from tqdm import tqdm
 os.environ.setdefault("OPENCV_IO_ENABLE_OPENEXR", "1")
 import cv2  # noqa: E402
 
-from stillbox_gen.formats import read_depth_exr  # noqa: E402
+from stillbox_gen.formats import (  # noqa: E402
+    METADATA_JSON,
+    UnsafePathError,
+    read_depth_exr,
+    resolve_inside,
+)
 
 from .flow import flow_from_depth  # noqa: E402
 
@@ -61,8 +66,18 @@ class Scene:
         return (i2 - i1) * self.speed * self.time_step
 
 
+def _inside(root: Path, relpath: str, what: str, folder: str = "") -> Path:
+    """stillbox_gen.formats.resolve_inside, raising DataError: a path read from the dataset may
+    not lead outside it (the file is then never opened)."""
+    try:
+        return resolve_inside(root, relpath, what, folder)
+    except UnsafePathError as e:
+        raise DataError(str(e)) from None
+
+
 def load_scenes(root: Path, split: str) -> list[Scene]:
-    """Scenes of one split, in index order. Raises DataError naming the faulty file."""
+    """Scenes of one split, in index order. Raises DataError naming the faulty file, or the
+    record whose file name would lead outside ``root``."""
     root = Path(root)
     man_path = root / "manifest.parquet"
     if not man_path.is_file():
@@ -76,7 +91,7 @@ def load_scenes(root: Path, split: str) -> list[Scene]:
     scenes = []
     for index, chunk in wanted:
         if chunk not in metas:
-            meta_path = root / chunk / "metadata.json"
+            meta_path = _inside(root, f"{chunk}/{METADATA_JSON}", f"{man_path}: scene {index}")
             try:
                 metas[chunk] = json.loads(meta_path.read_text())
             except (OSError, json.JSONDecodeError) as e:
@@ -89,12 +104,13 @@ def load_scenes(root: Path, split: str) -> list[Scene]:
                 f"{root / chunk / 'metadata.json'}: scene {index} has camera rotations; "
                 "these baselines need a stabilised dataset (no --rotation-noise/--rotation-speed)"
             )
+        where = f"{root / chunk / METADATA_JSON}: scene {index}"
         scenes.append(
             Scene(
                 index=index,
                 split=split,
-                rgb=[root / chunk / n for n in rec["rgb"]],
-                depth=[root / chunk / n for n in rec["depth_exr"]],
+                rgb=[_inside(root, n, where, chunk) for n in rec["rgb"]],
+                depth=[_inside(root, n, where, chunk) for n in rec["depth_exr"]],
                 speed=np.array(rec["speed"], dtype=np.float64),
                 time_step=float(rec["time_step"]),
                 K=np.array(rec["K"], dtype=np.float64),

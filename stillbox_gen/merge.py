@@ -5,6 +5,9 @@ Every source must hold the same parameters (same ``fingerprint`` and ``scenes``)
 scene of each source (its ``.records`` file exists) is linked, or copied across file systems, into
 OUT under a temporary name and renamed; its record is written last, as in a generation run, so an
 interrupted merge resumes. OUT is then indexed: the result equals a single run with the same seed.
+Records are copied as they are, with their checksums. A file name in a record that would lead
+outside its source or OUT (absolute, ``..``, a symlink) stops the merge before anything of that
+scene is written.
 """
 
 from __future__ import annotations
@@ -27,12 +30,6 @@ def _info(folder: Path) -> dict:
         return json.loads(path.read_text())
     except (OSError, json.JSONDecodeError) as e:
         raise ConfigError(f"SOURCES: cannot read '{path}' ({e})") from None
-
-
-def scene_files(record: dict) -> list[str]:
-    """Every file name of a scene in its chunk folder (frames, depth, legacy copies)."""
-    names = [*record["rgb"], *record["depth_exr"], *record["imgs"], *record["depth"]]
-    return sorted(set(names))
 
 
 def _place(src: Path, dst: Path) -> None:
@@ -75,16 +72,30 @@ def merge_datasets(out: Path, sources: list[Path]) -> tuple[int, object]:
         src = next((s for s in sources if formats.record_path(s, k).is_file()), None)
         if src is None:  # index_dataset below names every missing scene
             continue
-        rec_src = formats.record_path(src, k)
         chunk = formats.chunk_name(k)
+        where = f"SOURCES: scene {k} in '{src}'"
+        rec_src = formats.resolve_inside(src, formats.record_name(k), where)
+        rec_dst = formats.resolve_inside(out, formats.record_name(k), where)
         try:
             record = json.loads(rec_src.read_text())
+            names = formats.scene_files(record)
+        except (OSError, json.JSONDecodeError, KeyError, TypeError) as e:
+            raise ConfigError(f"{where} is unreadable ({e})") from None
+        where = f"SOURCES: {rec_src}: scene {k}"
+        pairs = [
+            (
+                formats.resolve_inside(src, name, where, folder=chunk),
+                formats.resolve_inside(out, name, where, folder=chunk),
+            )
+            for name in names
+        ]
+        try:
             (out / chunk).mkdir(exist_ok=True)
-            for name in scene_files(record):
-                _place(src / chunk / name, out / chunk / name)
-            formats.record_path(out, k).parent.mkdir(exist_ok=True)
-            _place(rec_src, formats.record_path(out, k))
-        except (OSError, json.JSONDecodeError, KeyError) as e:
+            for a, b in pairs:
+                _place(a, b)
+            rec_dst.parent.mkdir(exist_ok=True)
+            _place(rec_src, rec_dst)
+        except OSError as e:
             raise ConfigError(f"SOURCES: scene {k} in '{src}' is unreadable ({e})") from None
         copied += 1
     return copied, index_dataset(out, {"merged_from": [str(s) for s in sources]})

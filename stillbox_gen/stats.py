@@ -280,7 +280,7 @@ def _records(root: Path, indices: list[int]) -> list[dict]:
     """Scene records (metadata.json entries) of ``indices``, in that order."""
     by_index: dict[int, dict] = {}
     for chunk in sorted({formats.chunk_name(k) for k in indices}, key=int):
-        path = root / chunk / "metadata.json"
+        path = formats.resolve_inside(root, f"{chunk}/{formats.METADATA_JSON}", "DATASET")
         try:
             meta = json.loads(path.read_text())
         except (OSError, json.JSONDecodeError) as e:
@@ -291,7 +291,19 @@ def _records(root: Path, indices: list[int]) -> list[dict]:
         raise ConfigError(
             f"DATASET: scenes {missing[:5]} are in the manifest but not metadata.json"
         )
-    return [by_index[k] for k in indices]
+    records = [by_index[k] for k in indices]
+    for rec in records:  # refuse names leading outside the dataset before measuring anything
+        for key in ("rgb", "depth_exr"):
+            for f in range(len(rec[key])):
+                _scene_file(root, rec, key, f)
+    return records
+
+
+def _scene_file(root: Path, rec: dict, key: str, frame: int) -> Path:
+    """Checked path of file ``rec[key][frame]`` of a scene record (never outside ``root``)."""
+    chunk = formats.chunk_name(rec["index"])
+    where = f"DATASET: {chunk}/metadata.json: scene {rec['index']}"
+    return formats.resolve_inside(root, rec[key][frame], where, folder=chunk)
 
 
 def _read_rgb(path: Path) -> np.ndarray:
@@ -365,7 +377,6 @@ def dataset_stats(
     resolution = None
 
     for rec in tqdm(records, desc="stats", unit="scene", disable=not progress, dynamic_ncols=True):
-        chunk = root / formats.chunk_name(rec["index"])
         w, h = rec["resolution"]
         resolution = resolution or [w, h]
         K = np.asarray(rec["K"], dtype=np.float64)
@@ -373,7 +384,7 @@ def dataset_stats(
         box = rec["box"]
         depths, walls = [], []
         for f in range(len(poses)):
-            d = formats.read_depth_exr(chunk / rec["depth_exr"][f]).astype(np.float64)
+            d = formats.read_depth_exr(_scene_file(root, rec, "depth_exr", f)).astype(np.float64)
             wd = box_depth(K, poses[f], box["center"], box["half_extents"], w, h)
             wall = wall_mask(d, wd)
             depths.append(d)
@@ -388,7 +399,7 @@ def dataset_stats(
             for p, m in (("walls", wall), ("objects", ~wall)):
                 d_part[p].add(d[m])
                 coarse[p].add(d[m])
-        imgs = [_read_rgb(chunk / name) for name in rec["rgb"]]
+        imgs = [_read_rgb(_scene_file(root, rec, "rgb", f)) for f in range(len(rec["rgb"]))]
         for i in range(len(poses) - shift):
             j = i + shift
             flow, z_j = true_flow(depths[i], K, poses[i], poses[j])
@@ -570,10 +581,10 @@ def flicker_stats(root: Path, count: int, progress: bool = False, threads: int =
         ) as bar,
     ):
         for rec in records:
-            chunk = root / formats.chunk_name(rec["index"])
             local = formats.local_index(rec["index"])
-            stored = _read_rgb(chunk / rec["rgb"][0]).astype(np.float32)
-            depth = formats.read_depth_exr(chunk / rec["depth_exr"][0]).astype(np.float64)
+            stored = _read_rgb(_scene_file(root, rec, "rgb", 0)).astype(np.float32)
+            depth = formats.read_depth_exr(_scene_file(root, rec, "depth_exr", 0))
+            depth = depth.astype(np.float64)
             K = np.asarray(rec["K"], dtype=np.float64)
             w, h = rec["resolution"]
             wall = wall_mask(
