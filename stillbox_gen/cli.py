@@ -335,10 +335,13 @@ def build_config(o: dict) -> config.DatasetConfig:
 @cli.command()
 @click.argument("dataset", type=click.Path(path_type=Path))
 @click.option(
-    "--quick", is_flag=True, help="Check structure and metadata only, not every file's pixels."
+    "--quick",
+    is_flag=True,
+    help="Check structure and metadata only, not every file's checksum and pixels.",
 )
 def validate(dataset: Path, quick: bool) -> None:
-    """Check a dataset against the documented format; list problems by file (exit 1 if any)."""
+    """Check a dataset against the documented format and its records' checksums; list problems
+    by file (exit 1 if any)."""
     from .validate import validate_dataset
 
     if not dataset.is_dir():
@@ -346,6 +349,8 @@ def validate(dataset: Path, quick: bool) -> None:
     problems, stats = validate_dataset(dataset, check_pixels=not quick)
     for p in problems:
         click.echo(p)
+    for note in stats["notes"]:
+        click.echo(f"note: {note}")
     if problems:
         click.echo(f"{dataset}: {len(problems)} problem(s)", err=True)
         sys.exit(1)

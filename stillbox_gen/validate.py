@@ -1,4 +1,10 @@
-"""Check a dataset folder against docs/FORMAT.md; every problem names the file it concerns."""
+"""Check a dataset folder against docs/FORMAT.md; every problem names the file it concerns.
+
+Besides the schemas and the manifest, it checks the integrity of the files: each scene's
+``.records`` file equals its metadata.json entry, every file matches the SHA-256 in its record,
+the folders hold no file that no record names, and dataset.json's seed and fingerprint agree with
+its config and the scenes' seeds. Paths from records never leave the dataset folder.
+"""
 
 from __future__ import annotations
 
@@ -9,8 +15,9 @@ import cv2
 import jsonschema
 import numpy as np
 
-from . import formats, manifest, schema
+from . import config, formats, manifest, schema
 from .generate import DATASET_JSON, MANIFEST
+from .scene import scene_seed
 
 
 def _schema_problems(obj, sch: dict, where: str, limit: int = 5) -> list[str]:
@@ -23,29 +30,155 @@ def _schema_problems(obj, sch: dict, where: str, limit: int = 5) -> list[str]:
     return out
 
 
-def _check_frame(root: Path, chunk: str, rgb: str, depth: str, w: int, h: int) -> list[str]:
+def _check_frame(root: Path, rgb: str, depth: str, w: int, h: int) -> list[str]:
+    """Pixel checks of one frame; ``rgb`` and ``depth`` are checked paths relative to ``root``."""
     problems = []
-    img = cv2.imread(str(root / chunk / rgb), cv2.IMREAD_UNCHANGED)
+    img = cv2.imread(str(root / rgb), cv2.IMREAD_UNCHANGED)
     if img is None:
-        problems.append(f"{chunk}/{rgb}: missing or unreadable image")
+        problems.append(f"{rgb}: missing or unreadable image")
     elif img.shape != (h, w, 3) or img.dtype != np.uint8:
-        problems.append(f"{chunk}/{rgb}: expected {h}x{w}x3 uint8, got {img.shape} {img.dtype}")
+        problems.append(f"{rgb}: expected {h}x{w}x3 uint8, got {img.shape} {img.dtype}")
     try:
-        d = formats.read_depth_exr(root / chunk / depth)
+        d = formats.read_depth_exr(root / depth)
     except Exception as e:  # noqa: BLE001 - any reader failure is a problem to report
-        return [*problems, f"{chunk}/{depth}: unreadable depth EXR ({e})"]
+        return [*problems, f"{depth}: unreadable depth EXR ({e})"]
     if d.shape != (h, w):
-        problems.append(f"{chunk}/{depth}: expected {h}x{w}, got {d.shape}")
+        problems.append(f"{depth}: expected {h}x{w}, got {d.shape}")
     elif not np.all(np.isfinite(d)) or not np.all(d > 0):
         bad = int(np.sum(~np.isfinite(d) | (d <= 0)))
-        problems.append(f"{chunk}/{depth}: {bad} pixels not finite and positive")
+        problems.append(f"{depth}: {bad} pixels not finite and positive")
+    return problems
+
+
+def _info_problems(info: dict) -> list[str]:
+    """dataset.json's seed and fingerprint against its own config."""
+    problems = []
+    if not isinstance(info["config"], dict):
+        return [f"{DATASET_JSON}: config is not an object"]
+    if info["seed"] != info["config"].get("seed"):
+        problems.append(
+            f"{DATASET_JSON}: seed {info['seed']} differs from config.seed "
+            f"{info['config'].get('seed')}"
+        )
+    try:
+        fingerprint = config.from_dict(info["config"]).fingerprint()
+    except Exception as e:  # noqa: BLE001 - a malformed config is a problem to report
+        return [*problems, f"{DATASET_JSON}: config is not a stillbox-gen config ({e})"]
+    if fingerprint != info["fingerprint"]:
+        problems.append(
+            f"{DATASET_JSON}: fingerprint {info['fingerprint']} does not match its config "
+            f"({fingerprint}): the config was edited"
+        )
+    return problems
+
+
+def _record_problems(root: Path, s: dict) -> list[str]:
+    """The scene's ``.records`` file must exist and equal its metadata.json entry ``s``."""
+    name = formats.record_name(s["index"])
+    try:
+        path = formats.resolve_inside(root, name, f"scene {s['index']}")
+        on_disk = json.loads(path.read_text())
+    except formats.UnsafePathError as e:
+        return [str(e)]
+    except FileNotFoundError:
+        return [f"{name}: missing record of scene {s['index']} (listed in metadata.json)"]
+    except (OSError, json.JSONDecodeError) as e:
+        return [f"{name}: unreadable record of scene {s['index']} ({e})"]
+    if not isinstance(on_disk, dict):
+        return [f"{name}: record of scene {s['index']} is not a JSON object"]
+    if on_disk != s:
+        keys = sorted(k for k in {*on_disk, *s} if on_disk.get(k) != s.get(k))
+        return [f"{name}: differs from scene {s['index']} in metadata.json on {keys[:5]}"]
+    return []
+
+
+def _file_problems(root: Path, chunk: str, s: dict, check: bool) -> tuple[list[str], bool]:
+    """Every file of scene ``s`` inside the dataset and present; with ``check``, its SHA-256 as
+    recorded and its pixels. Returns (problems, whether the record holds checksums)."""
+    problems: list[str] = []
+    where = f"{chunk}/metadata.json: scene {s['index']}"
+    sums = s.get("sha256")
+    if sums is not None and not isinstance(sums, dict):
+        return [f"{where}: sha256 is not a {{file name: digest}} object"], True
+    safe = set()
+    for name in formats.scene_files(s):
+        rel = f"{chunk}/{name}"
+        try:
+            path = formats.resolve_inside(root, name, where, folder=chunk)
+        except formats.UnsafePathError as e:
+            problems.append(str(e))
+            continue
+        if not path.is_file():
+            problems.append(f"{rel}: missing (listed in metadata.json)")
+            continue
+        safe.add(name)
+        if sums is None or not check:
+            continue
+        if name not in sums:
+            problems.append(f"{rel}: no checksum in the record of scene {s['index']}")
+        elif formats.file_sha256(path) != sums[name]:
+            problems.append(
+                f"{rel}: SHA-256 differs from the record of scene {s['index']} "
+                "(the file was changed, replaced or swapped)"
+            )
+    if sums is not None:
+        for name in sorted(set(sums) - set(formats.scene_files(s))):
+            problems.append(f"{where}: sha256 names '{name}', which is no file of the scene")
+    if check:
+        w, h = s["resolution"]
+        for rgb, depth in zip(s["rgb"], s["depth_exr"], strict=True):
+            if rgb in safe and depth in safe:
+                problems += _check_frame(root, f"{chunk}/{rgb}", f"{chunk}/{depth}", w, h)
+    return problems, sums is not None
+
+
+def _unsafe_names(root: Path, chunk: str, meta) -> list[str]:
+    """Names of a metadata.json that failed its schema, but as they would be read, that lead
+    outside the dataset (said plainly, beside the schema's pattern message)."""
+    problems = []
+    scenes = meta.get("scenes") if isinstance(meta, dict) else None
+    for s in scenes if isinstance(scenes, list) else []:
+        if not isinstance(s, dict):
+            continue
+        where = f"{chunk}/metadata.json: scene {s.get('index')}"
+        lists = [s.get(k) for k in ("imgs", "depth", "rgb", "depth_exr")]
+        names = [n for v in lists if isinstance(v, list) for n in v]
+        for name in dict.fromkeys(n for n in names if isinstance(n, str)):
+            try:
+                formats.resolve_inside(root, name, where, folder=chunk)
+            except formats.UnsafePathError as e:
+                problems.append(str(e))
+    return problems
+
+
+def _stray_files(root: Path, chunk: str, named: set[str], locals_: set[int]) -> list[str]:
+    """Files of a chunk folder that no record names (leftover temporary folders aside)."""
+    problems = []
+    folder = root / chunk
+    for p in sorted(folder.iterdir()):
+        if p.name in named or p.name in (formats.METADATA_JSON, formats.RECORDS_DIR):
+            continue
+        if p.name.startswith(".tmp-") and p.is_dir():
+            continue  # reported as a leftover temporary folder
+        kind = "folder" if p.is_dir() else "file"
+        problems.append(f"{chunk}/{p.name}: stray {kind} (no scene record names it)")
+    records = folder / formats.RECORDS_DIR
+    if records.is_dir():
+        expected = {f"{k:04d}.json" for k in locals_}
+        for p in sorted(records.iterdir()):
+            if p.name not in expected:
+                problems.append(f"{chunk}/{formats.RECORDS_DIR}/{p.name}: stray file (no scene)")
     return problems
 
 
 def validate_dataset(root: Path, check_pixels: bool = True) -> tuple[list[str], dict]:
-    """Return (problems, stats). No problems means the dataset matches the documented format."""
+    """Return (problems, stats). No problems means the dataset matches the documented format.
+
+    ``check_pixels`` (off with ``validate --quick``) also reads every file: SHA-256 against the
+    records, image sizes, depth values. ``stats["notes"]`` lists what could not be checked.
+    """
     problems: list[str] = []
-    stats = {"scenes": 0, "frames": 0, "rows": 0}
+    stats: dict = {"scenes": 0, "frames": 0, "rows": 0, "notes": []}
     info_path = root / DATASET_JSON
     try:
         info = json.loads(info_path.read_text())
@@ -54,24 +187,37 @@ def validate_dataset(root: Path, check_pixels: bool = True) -> tuple[list[str], 
     problems += _schema_problems(info, schema.DATASET, DATASET_JSON)
     if problems:
         return problems, stats
+    problems += _info_problems(info)
+    if not isinstance(info["config"], dict):
+        return problems, stats
     n_scenes, n_frames = info["scenes"], info["frames_per_scene"]
     n_chunks = -(-n_scenes // formats.CHUNK_SIZE)
     expected_dirs = {str(c) for c in range(n_chunks)}
-    dirs = {p.name for p in root.iterdir() if p.is_dir()}
-    for extra in sorted(dirs - expected_dirs):
-        problems.append(f"{extra}/: unexpected folder (loaders read every sub-folder as a chunk)")
+    root_files = {DATASET_JSON, MANIFEST, *formats.STATS_FILES}
+    for p in sorted(root.iterdir()):
+        if p.is_dir() and p.name not in expected_dirs:
+            problems.append(
+                f"{p.name}/: unexpected folder (loaders read every sub-folder as a chunk)"
+            )
+        elif not p.is_dir() and p.name not in root_files:
+            problems.append(f"{p.name}: stray file at the dataset root (not part of the format)")
 
     records: list[dict] = []
+    unchecked: list[int] = []  # scenes whose record holds no checksums (older datasets)
     for c in range(n_chunks):
-        meta_path = root / str(c) / "metadata.json"
         try:
+            meta_path = formats.resolve_inside(root, f"{c}/{formats.METADATA_JSON}", f"chunk {c}")
             meta = json.loads(meta_path.read_text())
+        except formats.UnsafePathError as e:
+            problems.append(str(e))
+            continue
         except (OSError, json.JSONDecodeError) as e:
             problems.append(f"{c}/metadata.json: missing or not JSON ({e})")
             continue
         found = _schema_problems(meta, schema.METADATA, f"{c}/metadata.json")
         problems += found
         if found:
+            problems += _unsafe_names(root, str(c), meta)
             continue
         want = list(range(c * formats.CHUNK_SIZE, min(n_scenes, (c + 1) * formats.CHUNK_SIZE)))
         got = [s["index"] for s in meta["scenes"]]
@@ -79,8 +225,9 @@ def validate_dataset(root: Path, check_pixels: bool = True) -> tuple[list[str], 
             problems.append(f"{c}/metadata.json: scenes {got[:3]}... expected {want[:3]}...")
         for tmp in (root / str(c)).glob(".tmp-*"):
             problems.append(f"{c}/{tmp.name}: leftover temporary folder")
+        named: set[str] = set()
         for s in meta["scenes"]:
-            w, h = s["resolution"]
+            named.update(formats.scene_files(s))
             if s["length"] != n_frames or any(
                 len(s[k]) != n_frames for k in ("imgs", "depth", "rgb", "depth_exr", "cam2world")
             ):
@@ -88,14 +235,23 @@ def validate_dataset(root: Path, check_pixels: bool = True) -> tuple[list[str], 
                     f"{c}/metadata.json: scene {s['index']}: expected {n_frames} frames"
                 )
                 continue
-            for name in s["imgs"] + s["depth"]:
-                if not (root / str(c) / name).is_file():
-                    problems.append(f"{c}/{name}: missing (listed in metadata.json)")
-            if check_pixels:
-                for rgb, depth in zip(s["rgb"], s["depth_exr"], strict=True):
-                    problems += _check_frame(root, str(c), rgb, depth, w, h)
+            problems += _record_problems(root, s)
+            found, has_sums = _file_problems(root, str(c), s, check_pixels)
+            problems += found
+            if not has_sums:
+                unchecked.append(s["index"])
             records.append(s)
+        problems += _stray_files(root, str(c), named, {s["scene_in_chunk"] for s in meta["scenes"]})
     stats["scenes"], stats["frames"] = len(records), len(records) * n_frames
+    problems += _seed_problems(info["seed"], records)
+    if unchecked:
+        stats["notes"].append(
+            f"{len(unchecked)} of {len(records)} scenes (from {unchecked[0]}) have no checksums "
+            "in their records (written before stillbox-gen recorded them): their files' contents "
+            "cannot be checked"
+        )
+    if not check_pixels:
+        stats["notes"].append("--quick: checksums and pixels not checked")
 
     man_path = root / MANIFEST
     try:
@@ -119,3 +275,24 @@ def validate_dataset(root: Path, check_pixels: bool = True) -> tuple[list[str], 
                 problems.append(f"{MANIFEST}: row {i} disagrees with metadata.json on {keys}")
                 break
     return problems, stats
+
+
+def _seed_problems(seed: int, records: list[dict]) -> list[str]:
+    """Scene k's seed is derived from (dataset seed, k): a mismatch in every scene means
+    dataset.json's seed was edited, in some scenes that their records were."""
+    try:
+        bad = [(r, scene_seed(seed, r["index"])) for r in records]
+    except (TypeError, ValueError):
+        return [f"{DATASET_JSON}: seed {seed!r} is not a non-negative integer"]
+    bad = [(r, want) for r, want in bad if r["seed"] != want]
+    if bad and len(bad) == len(records):
+        r, want = bad[0]
+        return [
+            f"{DATASET_JSON}: seed {seed} does not give the scenes' seeds (scene {r['index']}: "
+            f"{r['seed']} in its record, {want} from seed {seed}): dataset.json was edited"
+        ]
+    return [
+        f"{formats.chunk_name(r['index'])}/metadata.json: scene {r['index']}: seed {r['seed']} "
+        f"is not the one derived from dataset seed {seed} ({want})"
+        for r, want in bad
+    ]
