@@ -4,12 +4,16 @@ Each must give the same files as the single local run of the `default_dataset` f
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
+import signal
 import socket
 import subprocess
 import sys
+import tempfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
@@ -69,7 +73,12 @@ def test_shards_started_together_into_a_new_folder_equal_a_single_run(default_da
 
 # ---------------------------------------------------------------- Ray
 
-RAY_ENV = {"RAY_AUTH_MODE": "token", "RAY_AUTH_TOKEN": "0" * 32, "RAY_USAGE_STATS_ENABLED": "0"}
+RAY_ENV = {
+    "RAY_AUTH_MODE": "token",
+    "RAY_AUTH_TOKEN": "0" * 32,
+    "RAY_USAGE_STATS_ENABLED": "0",
+    "RAY_GRACEFUL_SHUTDOWN_DRAIN_TIMEOUT_S": "0",  # stop at once on SIGTERM
+}
 
 
 def _free_port() -> int:
@@ -78,21 +87,111 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-@pytest.fixture(scope="module")
-def ray_cluster(tmp_path_factory):
-    """A local Ray head node (2 CPUs, token authentication on); yields its address."""
-    pytest.importorskip("ray", reason="the [ray] extra is not installed")  # `make test` has it
-    ray_bin = str(Path(sys.executable).parent / "ray")
-    env = {**os.environ, **RAY_ENV}
-    port = _free_port()
-    start = [ray_bin, "start", "--head", f"--port={port}", "--num-cpus=2",
-             "--include-dashboard=false", "--disable-usage-stats",
-             f"--temp-dir={tmp_path_factory.mktemp('ray')}"]  # fmt: skip
-    subprocess.run(start, env=env, check=True, capture_output=True, timeout=120)
+def _proc_stat(pid: int) -> tuple[int, int] | None:
+    """(parent pid, start time in clock ticks) of a live process (None: gone or a zombie)."""
     try:
-        yield f"127.0.0.1:{port}"
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return None
+    fields = stat[stat.rindex(")") + 2 :].split()
+    return None if fields[0] == "Z" else (int(fields[1]), int(fields[19]))
+
+
+def _descendants(root: int) -> dict[int, int]:
+    """{pid: start time} of every live process below ``root``."""
+    children: dict[int, list[tuple[int, int]]] = {}
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit() and (st := _proc_stat(int(entry.name))):
+            children.setdefault(st[0], []).append((int(entry.name), st[1]))
+    found, todo = {}, [root]
+    while todo:
+        for pid, start in children.get(todo.pop(), []):
+            found[pid] = start
+            todo.append(pid)
+    return found
+
+
+def _cmdline(pid: int) -> bytes:
+    try:
+        return Path(f"/proc/{pid}/cmdline").read_bytes()
+    except OSError:
+        return b""
+
+
+def _alive(procs: dict[int, int]) -> list[int]:
+    """Those of ``procs`` still running (same pid and start time: not a reused pid)."""
+    return [pid for pid, start in procs.items() if (st := _proc_stat(pid)) and st[1] == start]
+
+
+@dataclass
+class RayHead:
+    address: str
+    pid: int  # the `ray start --block` process; the node's processes are below it
+
+
+@contextlib.contextmanager
+def _ray_head():
+    """A Ray head node of its own (2 CPUs, token authentication on, its own port and temp dir
+    under /tmp: Ray's socket paths must stay below 108 bytes).
+
+    `ray start --head --block` stops the processes it started when it gets SIGTERM; whatever
+    of them outlives it (Ray workers run in their own process groups) is killed by pid. No
+    `ray stop`: that stops every Ray instance on the machine, a user's own cluster included.
+    """
+    with tempfile.TemporaryDirectory(prefix="ray-", ignore_cleanup_errors=True) as tmp:
+        yield from _run_ray_head(Path(tmp))
+
+
+def _run_ray_head(temp_dir: Path):
+    """_ray_head's body: start, yield a RayHead once it is up, stop what it started."""
+    port = _free_port()
+    cmd = [str(Path(sys.executable).parent / "ray"), "start", "--head", "--block",
+           f"--port={port}", "--num-cpus=2", "--include-dashboard=false",
+           "--disable-usage-stats", f"--temp-dir={temp_dir}"]  # fmt: skip
+    log = temp_dir / "ray-start.log"
+    with log.open("w") as out:
+        head = subprocess.Popen(cmd, env={**os.environ, **RAY_ENV}, stdout=out, stderr=out)
+    try:
+        deadline = time.time() + 120
+        while not (temp_dir / "ray_current_cluster").is_file():  # written once it is up
+            if head.poll() is not None or time.time() > deadline:
+                raise RuntimeError(f"ray start failed:\n{log.read_text()}")
+            time.sleep(0.2)
+        yield RayHead(f"127.0.0.1:{port}", head.pid)
     finally:
-        subprocess.run([ray_bin, "stop", "--force"], env=env, capture_output=True, timeout=120)
+        procs = _descendants(head.pid)
+        head.terminate()
+        try:
+            head.wait(timeout=120)
+        except subprocess.TimeoutExpired:
+            head.kill()
+            head.wait()
+        deadline = time.time() + 30
+        while _alive(procs) and time.time() < deadline:
+            time.sleep(0.2)
+        for pid in _alive(procs):
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGKILL)
+
+
+@pytest.fixture(scope="module")
+def ray_cluster():
+    """A local Ray head node started (and stopped) by these tests only."""
+    pytest.importorskip("ray", reason="the [ray] extra is not installed")  # `make test` has it
+    with _ray_head() as head:
+        yield head
+
+
+def test_stopping_the_test_cluster_leaves_other_ray_instances_alone():
+    """Another Ray instance on the machine (standing for a user's own) outlives the test
+    cluster, and nothing the test cluster started is left running."""
+    pytest.importorskip("ray", reason="the [ray] extra is not installed")
+    with _ray_head() as user:
+        theirs = _descendants(user.pid)
+        with _ray_head() as ours:
+            mine = _descendants(ours.pid)
+        assert mine and _alive(mine) == []
+        assert theirs and sorted(_alive(theirs)) == sorted(theirs)
 
 
 def _ray_cli(address: str, *args, check: bool = True) -> subprocess.CompletedProcess:
@@ -106,7 +205,7 @@ def _ray_cli(address: str, *args, check: bool = True) -> subprocess.CompletedPro
 
 def test_ray_backend_on_a_ray_cluster_equals_a_local_run(default_dataset, ray_cluster, tmp_path):
     out = tmp_path / "ray"
-    proc = _ray_cli(ray_cluster, *ARGS, "--scenes", 4, "--workers", 2, "--out", out)
+    proc = _ray_cli(ray_cluster.address, *ARGS, "--scenes", 4, "--workers", 2, "--out", out)
     assert "(4 rendered now)" in proc.stderr
     ref, got = file_tree(default_dataset), file_tree(out)
     assert sorted(ref) == sorted(got)
@@ -122,14 +221,19 @@ def test_ray_actor_killed_mid_run_is_replaced_and_its_scene_retried(
     out = tmp_path / "ray-crash"
     env = {**os.environ, **RAY_ENV}
     cmd = [*CLI, *map(str, ARGS), "--scenes", "8", "--out", str(out), "--backend", "ray",
-           "--ray-address", ray_cluster]  # fmt: skip
+           "--ray-address", ray_cluster.address]  # fmt: skip
     proc = subprocess.Popen(cmd, env=env, stderr=subprocess.PIPE, text=True)
     deadline = time.time() + 300
     while not list(out.glob("*/.records/*.json")) and time.time() < deadline:
         time.sleep(0.05)
-    killed = subprocess.run(["pkill", "-9", "-o", "-f", "ray::RenderActor"], check=False)
+    actors = {  # this cluster's render actors only, oldest first
+        pid: start
+        for pid, start in _descendants(ray_cluster.pid).items()
+        if _cmdline(pid).startswith(b"ray::RenderActor")
+    }
+    assert actors, "no Ray actor process found"
+    os.kill(min(actors, key=actors.get), signal.SIGKILL)
     _, stderr = proc.communicate(timeout=600)
-    assert killed.returncode == 0, "no Ray actor process found"
     assert proc.returncode == 0, stderr
     assert "worker process died" in stderr and "failures    0" not in stderr, stderr
     ref, got = file_tree(default_dataset), file_tree(out)
