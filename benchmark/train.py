@@ -125,10 +125,31 @@ def multiscale_loss(outputs: list[torch.Tensor], target: torch.Tensor, weights) 
     return multiscale_l1(outputs, target, weights)
 
 
+TMP_SUFFIX = ".tmp"  # save_checkpoint writes '.<name>.tmp' next to the checkpoint first
+
+
 def save_checkpoint(path: Path, payload: dict) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    torch.save(payload, tmp)
+    """Write ``payload`` atomically: a temporary file, fsynced, renamed over ``path``, then the
+    folder fsynced, so a kill or power cut leaves the old or the new checkpoint, never half."""
+    tmp = path.with_name(f".{path.name}{TMP_SUFFIX}")
+    with open(tmp, "wb") as f:
+        torch.save(payload, f)
+        f.flush()
+        os.fsync(f.fileno())
     os.replace(tmp, path)
+    fd = os.open(path.parent, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def remove_stale_temps(folder: Path) -> list[Path]:
+    """Delete the temporary files of checkpoint writes cut short by a kill; return them."""
+    stale = sorted(folder.glob(f".*.pt{TMP_SUFFIX}")) if folder.is_dir() else []
+    for p in stale:
+        p.unlink(missing_ok=True)
+    return stale
 
 
 def load_checkpoint(path: str | Path) -> dict:
@@ -251,6 +272,8 @@ class Trainer:
             self._resume()
         if self.main:
             self.ckpt_dir.mkdir(parents=True, exist_ok=True)
+            for p in remove_stale_temps(self.ckpt_dir):
+                self.log(f"removed {p}, left by an interrupted checkpoint write")
             (self.run / "config.json").write_text(json.dumps(asdict(cfg), indent=2) + "\n")
             env = environment(self.device)
             env["frame_cache_bytes"] = self.train_store.nbytes + self.val_store.nbytes
