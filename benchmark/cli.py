@@ -5,13 +5,18 @@ User mistakes print one line ``stillbox-bench: error: ...`` and exit with code 2
 
 from __future__ import annotations
 
+import math
 import sys
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import click
 
 from . import models
+
+if TYPE_CHECKING:
+    import torch
 
 
 class UserError(click.ClickException):
@@ -31,6 +36,32 @@ def score_checkpoint(*args, **kwargs) -> dict:
     from .runner import score_checkpoint as score
 
     return score(*args, **kwargs)
+
+
+def _device(name: str) -> torch.device:
+    """--device resolved to a torch.device (UserError naming --device when unusable)."""
+    from .train import resolve_device
+
+    try:
+        return resolve_device(name)
+    except ValueError as e:
+        raise UserError(str(e)) from None
+
+
+def _training_options(o: dict) -> None:
+    """Check the numeric training flags of 'run' and 'compare' (UserError naming the flag)."""
+    for flag in ("epochs", "max_steps", "batch_size"):
+        if o[flag] is not None and o[flag] < 1:
+            raise UserError(f"--{flag.replace('_', '-')}: must be at least 1, got {o[flag]}")
+    if o["lr"] is not None and not (o["lr"] > 0 and math.isfinite(o["lr"])):
+        raise UserError(f"--lr: must be a positive number, got {o['lr']}")
+    if o.get("log_every", 1) < 1:
+        raise UserError(f"--log-every: must be at least 1, got {o['log_every']}")
+    if o.get("ckpt_every", 0) < 0:
+        raise UserError(f"--ckpt-every: must be 0 (epoch ends only) or more, got {o['ckpt_every']}")
+    if o["threads"] < 0:
+        raise UserError(f"--threads: must be 0 (torch default) or more, got {o['threads']}")
+    _device(o["device"])
 
 
 def _models_option(value: str) -> list[str]:
@@ -156,9 +187,7 @@ def run(model: str, data: Path, out: Path | None, **o) -> None:
         raise UserError(f"--out: '{out}' is a file")
     if not o["resume"] and (out / "checkpoints" / "last.pt").exists():
         raise UserError(f"--out: '{out}' already holds a run; add --resume or choose another --out")
-    for flag in ("epochs", "max_steps", "batch_size"):
-        if o[flag] is not None and o[flag] < 1:
-            raise UserError(f"--{flag.replace('_', '-')}: must be at least 1")
+    _training_options(o)
     if o["pretrained"] is not None and not o["pretrained"].is_file():
         raise UserError(f"--pretrained: no such file '{o['pretrained']}'")
     if not trainable and (o["pretrained"] or o["resume"]):
@@ -239,9 +268,13 @@ def eval_cmd(
     if not ckpt.is_file():
         raise UserError(f"--ckpt: no such file '{ckpt}'")
     data = _dataset_dir(data)
+    if batch_size < 1:
+        raise UserError(f"--batch-size: must be at least 1, got {batch_size}")
+    _device(device)
     out = out or ckpt.resolve().parent.parent / f"eval-{data.resolve().name}-{split}"
-    out.mkdir(parents=True, exist_ok=True)
-    try:
+    if out.exists() and not out.is_dir():
+        raise UserError(f"--out: '{out}' is a file")
+    try:  # checks the checkpoint and the data before anything is written to --out
         s = score_checkpoint(ckpt, data, split, out, device, batch_size, save_predictions)
     except ValueError as e:
         raise UserError(str(e)) from None
@@ -313,9 +346,7 @@ def compare(data: Path, names: str, out: Path | None, **o) -> None:
     comparison table and one error-vs-FOE-distance figure with every method."""
     chosen = _models_option(names)
     data = _dataset_dir(data)
-    for flag in ("epochs", "max_steps", "batch_size"):
-        if o[flag] is not None and o[flag] < 1:
-            raise UserError(f"--{flag.replace('_', '-')}: must be at least 1")
+    _training_options(o)
     if out is None:
         out = Path("runs") / f"compare-{data.resolve().name}-{time.strftime('%Y%m%d-%H%M%S')}"
     if out.exists() and not out.is_dir():
@@ -394,7 +425,6 @@ def speed(
     import torch
 
     from . import speed as sp
-    from .train import resolve_device
 
     chosen = _models_option(names)
     no_net = [n for n in chosen if not models.MODELS[n].trainable]
@@ -406,12 +436,9 @@ def speed(
         raise UserError("--warmup must be >= 0 and --repeats >= 1")
     if out.exists() and not out.is_dir():
         raise UserError(f"--out: '{out}' is a file")
+    dev = _device(device)
     if threads > 0:
         torch.set_num_threads(threads)
-    try:
-        dev = resolve_device(device)
-    except ValueError as e:
-        raise UserError(str(e)) from None
     rows = sp.measure(chosen, dev, sizes, time_res, warmup=warmup, repeats=repeats)
     path = out / sp.csv_name(dev)
     sp.write_csv(rows, path)

@@ -20,7 +20,14 @@ from . import models
 from .data import MAX_DEPTH, FrameStore, PairDataset, Scene, load_scenes, read_depth
 from .evaluate import Method, evaluate
 from .report import foe_bins, foe_table, write_run_report
-from .train import TrainConfig, Trainer, environment, load_checkpoint, resolve_device
+from .train import (
+    TrainConfig,
+    Trainer,
+    environment,
+    load_checkpoint,
+    load_weights,
+    resolve_device,
+)
 
 MEDIAN_FRAMES = 2000  # at most this many training frames (evenly spread) for the constant
 ORACLE_FLOW_NOISE_PX = 0.05  # oracle-flow is also scored with this much flow noise (sensitivity)
@@ -57,12 +64,16 @@ def score_checkpoint(
     save_predictions: bool,
     progress: bool = True,
 ) -> dict:
-    """Evaluate a checkpoint on a split and write summary.json/.md, per_sample.csv, plots/."""
-    ck = load_checkpoint(ckpt)
+    """Evaluate a checkpoint on a split and write summary.json/.md, per_sample.csv, plots/.
+
+    The checkpoint, device and data are checked before ``out`` is created."""
+    if batch_size < 1:
+        raise ValueError(f"--batch-size: must be at least 1, got {batch_size}")
+    dev = resolve_device(device)
+    ck = load_checkpoint(ckpt, "--ckpt")
     name = ck["model_name"]
     model = models.build_model(name)
-    model.load_state_dict(ck["model"])
-    dev = resolve_device(device)
+    load_weights(model, ck, f"--ckpt {ckpt}", name)
     model.to(dev)
     shift = ck.get("shift", 3)
     split, scenes, dataset = eval_split(data, split, shift, progress)
@@ -104,7 +115,6 @@ def score_baseline(
     if spec.trainable:
         raise ValueError(f"{name}: a network; train it with 'run'")
     dev = resolve_device(device)
-    out.mkdir(parents=True, exist_ok=True)
     info: dict = {"dataset": str(data)}
     method = Method(spec.output)
     if spec.output == "constant":
@@ -115,6 +125,7 @@ def score_baseline(
             f"every pixel of {frames} frames spread evenly over the split"
         )
     split, scenes, dataset = eval_split(data, split, shift, progress)
+    out.mkdir(parents=True, exist_ok=True)  # after every check: a mistake leaves nothing behind
     config = {"model": name, "data": str(data), "split": split, "shift": shift, "device": device}
     (out / "config.json").write_text(json.dumps(config, indent=2) + "\n")
     (out / "environment.json").write_text(json.dumps(environment(dev), indent=2) + "\n")
@@ -157,9 +168,9 @@ def _oracle_sensitivity(out: Path, summary: dict, dataset, dev, batch_size: int)
 
 def train_and_score(cfg: TrainConfig) -> dict | None:
     """Train ``cfg.model`` into ``cfg.out``, then score its best checkpoint on the test split
-    (val when test is empty). Returns the summary (None on non-zero DDP ranks)."""
+    (val when test is empty). Returns the summary (None on non-zero DDP ranks). ``cfg.out`` is
+    created by Trainer.setup once every input has been checked."""
     out = Path(cfg.out)
-    out.mkdir(parents=True, exist_ok=True)
     trainer = Trainer(cfg)
     trainer.setup()
     t0 = time.perf_counter()

@@ -7,8 +7,9 @@ flow / 20), and keep the checkpoint with the best validation EPE instead of the 
 
 Run folder written here: ``config.json``, ``environment.json``, ``steps.csv`` (loss every
 ``log_every`` steps), ``metrics.csv`` (one row per validation), ``tb/`` (TensorBoard) and
-``checkpoints/{last,best}.pt`` (atomic). Multi-process training works unchanged under
-``torchrun`` (DDP; gloo on CPU, NCCL on GPUs): rank 0 logs, validates and saves.
+``checkpoints/{last,best}.pt`` (atomic, fsynced; read back with ``weights_only=True``, so a
+checkpoint can never run code). Multi-process training works unchanged under ``torchrun`` (DDP;
+gloo on CPU, NCCL on GPUs): rank 0 logs, validates and saves.
 """
 
 from __future__ import annotations
@@ -17,9 +18,12 @@ import csv
 import json
 import math
 import os
+import pickle
 import platform
+import re
 import signal
 import time
+import warnings
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -65,10 +69,14 @@ class TrainConfig:
 
 
 def resolve_device(name: str) -> torch.device:
+    """``auto`` (CUDA when available), ``cpu``, ``cuda`` or ``cuda:N``; ValueError naming
+    --device otherwise."""
+    if not re.fullmatch(r"auto|cpu|cuda(:\d+)?", name):
+        raise ValueError(f"--device: unknown device '{name}' (auto, cpu, cuda or cuda:N)")
     if name == "auto":
         name = "cuda" if torch.cuda.is_available() else "cpu"
     if name.startswith("cuda") and not torch.cuda.is_available():
-        raise ValueError("--device cuda: no CUDA device is available")
+        raise ValueError(f"--device {name}: no CUDA device is available")
     return torch.device(name)
 
 
@@ -152,13 +160,86 @@ def remove_stale_temps(folder: Path) -> list[Path]:
     return stale
 
 
-def load_checkpoint(path: str | Path) -> dict:
+def _first_line(e: Exception) -> str:
+    text = str(e).strip()
+    return text.splitlines()[0] if text else type(e).__name__
+
+
+CHECKPOINT_KEYS = ("model", "model_name", "nominal_displacement")
+
+
+def load_checkpoint(path: str | Path, flag: str | None = None) -> dict:
+    """A checkpoint written by Trainer.checkpoint, unpickled with ``weights_only=True`` (tensors
+    and plain data only: a file that would run code is refused, never executed).
+
+    Anything else raises ValueError with one line naming ``flag`` (e.g. "--ckpt") and the file.
+    """
+    where = f"{flag} {path}" if flag else str(path)
     try:
-        return torch.load(path, map_location="cpu", weights_only=False)
+        with warnings.catch_warnings():  # e.g. "Detected pickle protocol 4" for foreign pickles
+            warnings.simplefilter("ignore")
+            ck = torch.load(path, map_location="cpu", weights_only=True)
     except FileNotFoundError:
-        raise ValueError(f"{path}: no such checkpoint") from None
-    except Exception as e:  # noqa: BLE001
-        raise ValueError(f"{path}: not a readable checkpoint ({e})") from None
+        raise ValueError(f"{where}: no such checkpoint") from None
+    except pickle.UnpicklingError as e:
+        found = re.search(r"GLOBAL (\S+)", str(e))
+        if found:
+            raise ValueError(
+                f"{where}: refused, it would run code or build objects other than tensors "
+                f"({found.group(1)}); only checkpoints written by stillbox-bench are loaded"
+            ) from None
+        raise ValueError(
+            f"{where}: not a readable checkpoint (corrupt or not a torch file)"
+        ) from None
+    except Exception as e:  # noqa: BLE001 - any reader failure is the file's fault
+        raise ValueError(f"{where}: not a readable checkpoint ({_first_line(e)})") from None
+    if isinstance(ck, dict) and ck and all(isinstance(v, torch.Tensor) for v in ck.values()):
+        raise ValueError(
+            f"{where}: a bare state_dict, not a stillbox-bench checkpoint (a dict with "
+            f"{', '.join(map(repr, CHECKPOINT_KEYS))}, as 'run' writes)"
+        )
+    if not isinstance(ck, dict) or not all(k in ck for k in CHECKPOINT_KEYS):
+        raise ValueError(
+            f"{where}: not a stillbox-bench checkpoint (expected a dict with "
+            f"{', '.join(map(repr, CHECKPOINT_KEYS))}, as 'run' writes)"
+        )
+    name = ck["model_name"]
+    if not isinstance(name, str) or name not in models.MODELS or not models.MODELS[name].trainable:
+        raise ValueError(f"{where}: unknown model name {name!r} in the checkpoint")
+    if not isinstance(ck["model"], dict):
+        raise ValueError(f"{where}: its 'model' entry is not a state_dict")
+    return ck
+
+
+def load_weights(model: torch.nn.Module, ck: dict, where: str, name: str) -> None:
+    """``model.load_state_dict(ck["model"])`` for the network ``name``; weights that do not fit
+    raise a one-line ValueError naming ``where`` (flag and file) and the first misfit tensor."""
+    own, theirs = model.state_dict(), ck["model"]
+    shape = [
+        k
+        for k in own
+        if k in theirs
+        and not (isinstance(theirs[k], torch.Tensor) and theirs[k].shape == own[k].shape)
+    ]
+    missing = [k for k in own if k not in theirs]
+    unexpected = [k for k in theirs if k not in own]
+    if shape or missing or unexpected:
+        found = [(shape, "of another shape"), (missing, "missing"), (unexpected, "unexpected")]
+        parts = [f"{len(keys)} {what}" for keys, what in found if keys]
+        counts = ", ".join([parts[0].replace(" ", " tensors ", 1), *parts[1:]])
+        if shape:
+            k = shape[0]
+            got = tuple(theirs[k].shape) if isinstance(theirs[k], torch.Tensor) else "no tensor"
+            example = f"{k} is {got} instead of {tuple(own[k].shape)}"
+        else:
+            example = f"{(missing or unexpected)[0]} is {'missing' if missing else 'unexpected'}"
+        source = ck.get("model_name")
+        whose = "its weights" if source == name else f"weights of '{source}'"
+        raise ValueError(f"{where}: {whose} do not fit '{name}': {counts}; e.g. {example}")
+    try:
+        model.load_state_dict(theirs)
+    except (RuntimeError, TypeError, ValueError) as e:
+        raise ValueError(f"{where}: weights do not load into '{name}' ({_first_line(e)})") from None
 
 
 def _append_csv(path: Path, row: dict) -> None:
@@ -179,6 +260,9 @@ def _truncate_csv(path: Path, last_step: int) -> None:
     for row in rows:
         if float(row["step"]) <= last_step:
             _append_csv(path, row)
+
+
+RESUME_KEYS = ("optimizer", "scheduler", "state")
 
 
 class Trainer:
@@ -204,17 +288,29 @@ class Trainer:
             tqdm.write(msg)
 
     def setup(self) -> None:
+        """Check every input (checkpoints, data), then create the run folder: an error leaves
+        nothing behind."""
         cfg = self.cfg
         torch.manual_seed(cfg.seed)
         spec = models.MODELS[cfg.model]
         if not spec.trainable:
             raise ValueError(f"{cfg.model}: has no network to train")
+        last = self.ckpt_dir / "last.pt"
+        resume = load_checkpoint(last, "--resume") if cfg.resume else None
+        if resume is not None and resume["model_name"] != cfg.model:
+            raise ValueError(
+                f"--resume {last}: a run of '{resume['model_name']}', not '{cfg.model}'"
+            )
+        if resume is not None and not all(k in resume for k in RESUME_KEYS):
+            raise ValueError(f"--resume {last}: holds no training state (not a 'last.pt')")
         self.output = spec.output  # "depth" or "flow"
         self.model = spec.build().to(self.device)
         self.nominal_displacement = None
         if cfg.pretrained:
-            ck = load_checkpoint(cfg.pretrained)
-            self.model.load_state_dict(ck["model"])
+            where = f"--pretrained {cfg.pretrained}"
+            load_weights(
+                self.model, load_checkpoint(cfg.pretrained, "--pretrained"), where, cfg.model
+            )
             self.log(f"initialised from {cfg.pretrained}")
         self.net = self.model
         if self.world > 1:
@@ -238,6 +334,8 @@ class Trainer:
         miles = sorted({max(1, round(m * cfg.epochs)) for m in cfg.milestones})
         self.sched = torch.optim.lr_scheduler.MultiStepLR(self.opt, miles, cfg.gamma)
         self.state = {"epoch": 0, "step_in_epoch": 0, "global_step": 0, "best": math.inf}
+        if resume is not None:
+            self._load_training_state(resume, last)
 
         train_scenes = load_scenes(Path(cfg.data), "train")
         val_scenes = load_scenes(Path(cfg.data), "val")
@@ -268,12 +366,8 @@ class Trainer:
                 f"--batch-size {cfg.batch_size}: larger than the "
                 f"{len(self.train_set)} training samples"
             )
-        if cfg.resume:
-            self._resume()
         if self.main:
-            self.ckpt_dir.mkdir(parents=True, exist_ok=True)
-            for p in remove_stale_temps(self.ckpt_dir):
-                self.log(f"removed {p}, left by an interrupted checkpoint write")
+            self._prepare_run_folder()
             (self.run / "config.json").write_text(json.dumps(asdict(cfg), indent=2) + "\n")
             env = environment(self.device)
             env["frame_cache_bytes"] = self.train_store.nbytes + self.val_store.nbytes
@@ -282,18 +376,30 @@ class Trainer:
             from torch.utils.tensorboard import SummaryWriter
 
             self.tb = SummaryWriter(str(self.run / "tb"))
+        if resume is not None:
+            self.log(f"resumed from {last} at step {self.state['global_step']}")
 
-    def _resume(self) -> None:
-        path = self.ckpt_dir / "last.pt"
-        ck = load_checkpoint(path)
-        self.model.load_state_dict(ck["model"])
-        self.opt.load_state_dict(ck["optimizer"])
-        self.sched.load_state_dict(ck["scheduler"])
-        self.state = ck["state"]
-        if self.main:  # forget log rows written after the checkpoint
+    def _load_training_state(self, ck: dict, path: Path) -> None:
+        """Weights, optimiser, scheduler and counters."""
+        load_weights(self.model, ck, f"--resume {path}", self.cfg.model)
+        try:
+            self.opt.load_state_dict(ck["optimizer"])
+            self.sched.load_state_dict(ck["scheduler"])
+            self.state.update(ck["state"])
+        except (KeyError, ValueError, TypeError) as e:
+            raise ValueError(
+                f"--resume {path}: its training state does not fit this run ({_first_line(e)})"
+            ) from None
+
+    def _prepare_run_folder(self) -> None:
+        """Create the run folder, delete checkpoint temporaries left by a kill and, resuming,
+        drop log rows written after the checkpoint."""
+        self.ckpt_dir.mkdir(parents=True, exist_ok=True)
+        for p in remove_stale_temps(self.ckpt_dir):
+            self.log(f"removed {p}, left by an interrupted checkpoint write")
+        if self.cfg.resume:
             for name in ("steps.csv", "metrics.csv"):
                 _truncate_csv(self.run / name, self.state["global_step"])
-        self.log(f"resumed from {path} at step {self.state['global_step']}")
 
     def checkpoint(self, name: str) -> None:
         if not self.main:

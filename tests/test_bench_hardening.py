@@ -8,8 +8,10 @@ import os
 import subprocess
 from pathlib import Path
 
+import pytest
 import test_bench
 import torch
+from test_bench import bench
 
 from benchmark import models, train
 from benchmark.runner import train_config
@@ -51,6 +53,95 @@ class CreatesFile:
 
     def __reduce__(self):
         return (open, (str(self.path), "w"))
+
+
+# ------------------------------------------------------------------ checkpoints never run code
+
+
+@pytest.mark.parametrize("flag", ["--ckpt", "--pretrained", "--resume"])
+def test_malicious_checkpoint_is_refused_not_executed(tiny_dataset, tmp_path, flag):
+    marker = tmp_path / "executed"
+    out = tmp_path / "out"
+    evil = tmp_path / "evil.pt"
+    if flag == "--resume":
+        evil = out / "checkpoints" / "last.pt"
+    write_checkpoint(evil, model=CreatesFile(marker))
+    if flag == "--ckpt":
+        args = ["eval", "--ckpt", evil, "--data", tiny_dataset, "--out", out]
+    else:
+        args = ["run", "depthnet-tiny", "--data", tiny_dataset, "--batch-size", 4, "--quiet"]
+        args += ["--out", out, *(["--resume"] if flag == "--resume" else ["--pretrained", evil])]
+    proc = bench(*args, check=False)
+    assert not marker.exists(), "the checkpoint's pickle was executed"
+    assert_bench_error(proc, flag, str(evil), "refused")
+    assert flag == "--resume" or not out.exists()
+
+
+@pytest.mark.parametrize(
+    ("content", "words"),
+    [
+        (b"not a checkpoint", ["not a readable checkpoint"]),
+        (b"", ["not a readable checkpoint"]),
+        ("state_dict", ["bare state_dict"]),
+        ("tensor", ["not a stillbox-bench checkpoint"]),
+        ("mismatch", ["its weights do not fit 'depthnet'", "conv1.0.weight"]),
+    ],
+    ids=["junk", "empty", "state_dict", "tensor", "mismatch"],
+)
+def test_eval_of_an_unusable_checkpoint_is_one_line(tiny_dataset, tmp_path, content, words):
+    ckpt = tmp_path / "c.pt"
+    if isinstance(content, bytes):
+        ckpt.write_bytes(content)
+    elif content == "state_dict":
+        torch.save(models.build_model("depthnet-tiny").state_dict(), ckpt)
+    elif content == "tensor":
+        torch.save(torch.zeros(3), ckpt)
+    else:  # depthnet-tiny weights labelled as the full-width DepthNet
+        write_checkpoint(ckpt, model_name="depthnet")
+    out = tmp_path / "out"
+    proc = bench("eval", "--ckpt", ckpt, "--data", tiny_dataset, "--out", out, check=False)
+    assert_bench_error(proc, "--ckpt", str(ckpt), *words)
+    assert not out.exists()
+
+
+def test_pretrained_from_another_architecture_is_one_line(tiny_dataset, tmp_path):
+    ckpt = write_checkpoint(tmp_path / "flownets.pt", "flownets-depth-tiny")
+    out = tmp_path / "out"
+    proc = bench(
+        "run", "depthnet-tiny", "--data", tiny_dataset, "--pretrained", ckpt, "--out", out,
+        "--quiet", check=False,
+    )  # fmt: skip
+    assert_bench_error(proc, "--pretrained", str(ckpt), "flownets-depth-tiny", "'depthnet-tiny'")
+    assert not out.exists()
+
+
+# ------------------------------------------------------------------ bad flags leave nothing
+
+
+BAD_FLAGS = [
+    (["run", "depthnet-tiny", "--device", "foo"], ["--device", "foo"]),
+    (["run", "constant", "--device", "foo"], ["--device", "foo"]),
+    (["eval", "--ckpt", "CKPT", "--device", "foo"], ["--device", "foo"]),
+    (["compare", "--models", "constant", "--device", "foo"], ["--device", "foo"]),
+    (["speed", "--models", "depthnet-tiny", "--device", "cuda:x"], ["--device", "cuda:x"]),
+    (["run", "depthnet-tiny", "--lr", "-1"], ["--lr", "-1"]),
+    (["compare", "--models", "depthnet-tiny", "--lr", "0"], ["--lr"]),
+    (["eval", "--ckpt", "CKPT", "--batch-size", "0"], ["--batch-size", "0"]),
+    (["run", "depthnet-tiny", "--log-every", "0"], ["--log-every"]),
+    (["run", "depthnet-tiny", "--batch-size", "1000"], ["--batch-size", "1000"]),
+]
+
+
+@pytest.mark.parametrize(("args", "words"), BAD_FLAGS, ids=[" ".join(a) for a, _ in BAD_FLAGS])
+def test_bad_flag_is_one_line_and_leaves_no_out_folder(tiny_dataset, tmp_path, args, words):
+    ckpt = write_checkpoint(tmp_path / "c.pt")
+    args = [str(ckpt) if a == "CKPT" else a for a in args]
+    out = tmp_path / "out"
+    data = [] if args[0] == "speed" else ["--data", tiny_dataset]
+    quiet = ["--quiet"] if args[0] in ("run", "compare") else []
+    proc = bench(*args, *data, *quiet, "--out", out, check=False)
+    assert_bench_error(proc, *words)
+    assert not out.exists()
 
 
 # ------------------------------------------------------------------ checkpoint writes
