@@ -124,7 +124,9 @@ def list_cmd() -> None:
 @click.option(
     "--out",
     type=click.Path(path_type=Path),
-    help="Run folder.  [default: runs/<model>-<dataset>-<time>]",
+    help="Run folder.  [default: runs/<model>-<dataset>-<time>]  A folder holding "
+    "checkpoints/last.pt needs --resume (or another --out); the logs of a run killed before "
+    "its first checkpoint are replaced, as there is nothing to resume.",
 )
 @click.option(
     "--epochs",
@@ -154,7 +156,12 @@ def list_cmd() -> None:
     type=click.Path(path_type=Path),
     help="Checkpoint to start from (curriculum 64->128->...).",
 )
-@click.option("--resume", is_flag=True, help="Continue the run in --out from checkpoints/last.pt.")
+@click.option(
+    "--resume",
+    is_flag=True,
+    help="Continue the run in --out from checkpoints/last.pt, keeping its logs up to that "
+    "checkpoint (an interrupted epoch's train loss is logged as if never interrupted).",
+)
 @click.option(
     "--ckpt-every",
     type=int,

@@ -21,6 +21,7 @@ import os
 import pickle
 import platform
 import re
+import shutil
 import signal
 import time
 import warnings
@@ -263,6 +264,9 @@ def _truncate_csv(path: Path, last_step: int) -> None:
 
 
 RESUME_KEYS = ("optimizer", "scheduler", "state")
+#: running sums of the open stage (steps since the last validation), kept in the checkpoint so
+#: a resumed stage logs the same train_loss and samples/s as an uninterrupted one
+STAGE_KEYS = ("stage_loss_sum", "stage_steps", "stage_samples", "stage_wait", "stage_seconds")
 
 
 class Trainer:
@@ -334,6 +338,7 @@ class Trainer:
         miles = sorted({max(1, round(m * cfg.epochs)) for m in cfg.milestones})
         self.sched = torch.optim.lr_scheduler.MultiStepLR(self.opt, miles, cfg.gamma)
         self.state = {"epoch": 0, "step_in_epoch": 0, "global_step": 0, "best": math.inf}
+        self.state.update(dict.fromkeys(STAGE_KEYS, 0))
         if resume is not None:
             self._load_training_state(resume, last)
 
@@ -375,12 +380,14 @@ class Trainer:
             (self.run / "environment.json").write_text(json.dumps(env, indent=2) + "\n")
             from torch.utils.tensorboard import SummaryWriter
 
-            self.tb = SummaryWriter(str(self.run / "tb"))
+            # on resume, TensorBoard drops the events logged after the checkpoint
+            purge = self.state["global_step"] if cfg.resume else None
+            self.tb = SummaryWriter(str(self.run / "tb"), purge_step=purge)
         if resume is not None:
             self.log(f"resumed from {last} at step {self.state['global_step']}")
 
     def _load_training_state(self, ck: dict, path: Path) -> None:
-        """Weights, optimiser, scheduler and counters."""
+        """Weights, optimiser, scheduler and counters (with the open stage's running sums)."""
         load_weights(self.model, ck, f"--resume {path}", self.cfg.model)
         try:
             self.opt.load_state_dict(ck["optimizer"])
@@ -392,14 +399,19 @@ class Trainer:
             ) from None
 
     def _prepare_run_folder(self) -> None:
-        """Create the run folder, delete checkpoint temporaries left by a kill and, resuming,
-        drop log rows written after the checkpoint."""
+        """Create the run folder. Resuming: drop log rows written after the checkpoint. Not
+        resuming (no checkpoint to continue, e.g. a run killed before its first one): start the
+        logs afresh. Either way delete checkpoint temporaries left by a kill."""
         self.ckpt_dir.mkdir(parents=True, exist_ok=True)
         for p in remove_stale_temps(self.ckpt_dir):
             self.log(f"removed {p}, left by an interrupted checkpoint write")
         if self.cfg.resume:
             for name in ("steps.csv", "metrics.csv"):
                 _truncate_csv(self.run / name, self.state["global_step"])
+            return
+        for name in ("steps.csv", "metrics.csv", "checkpoints/best.pt"):
+            (self.run / name).unlink(missing_ok=True)
+        shutil.rmtree(self.run / "tb", ignore_errors=True)
 
     def checkpoint(self, name: str) -> None:
         if not self.main:
@@ -433,9 +445,14 @@ class Trainer:
         )
         return result.summary
 
-    def end_of_stage(self, train_loss: float, seconds: float, samples: int, wait: float) -> None:
-        """Validate, log a metrics row, keep the best checkpoint, save the last one."""
+    def end_of_stage(self) -> None:
+        """Close the open stage: validate, log a metrics row from its running sums, reset them,
+        keep the best checkpoint, save the last one."""
         st = self.state
+        steps, seconds = st["stage_steps"], st["stage_seconds"]
+        train_loss = st["stage_loss_sum"] / steps if steps else float("nan")
+        samples, wait = st["stage_samples"], st["stage_wait"]
+        st.update(dict.fromkeys(STAGE_KEYS, 0))
         if self.main:
             val = self.validate()
             row = {
@@ -476,6 +493,8 @@ class Trainer:
             raise KeyboardInterrupt
 
     def _fit(self, stop: list) -> None:
+        """Stages end at each epoch's end and at ``total_steps``. A stage whose end was reached
+        but not closed (Ctrl-C on its last step) is closed first when resuming."""
         cfg, st = self.cfg, self.state
         total = self.total_steps()
         bar = tqdm(
@@ -485,29 +504,35 @@ class Trainer:
             dynamic_ncols=True,
             disable=not (cfg.progress and self.main),
         )
-        while st["global_step"] < total and not stop:
+        while not stop:
+            if st["stage_steps"] and (st["step_in_epoch"] == 0 or st["global_step"] >= total):
+                self.end_of_stage()
+            if st["global_step"] >= total:
+                break
             self.train_set.set_epoch(st["epoch"])
             self.sampler.set_epoch(st["epoch"], skip=st["step_in_epoch"] * self.per_rank_batch)
             self.net.train()
-            losses, samples, wait, t_stage = [], 0, 0.0, time.perf_counter()
+            seconds0, t_segment = st["stage_seconds"], time.perf_counter()
             t_data = time.perf_counter()
             for batch in self.loader:
-                wait += time.perf_counter() - t_data
+                st["stage_wait"] += time.perf_counter() - t_data
                 x = batch["input"].to(self.device, non_blocking=True)
                 y = batch["target"].to(self.device, non_blocking=True)
                 loss = multiscale_loss(self.net(x), y, cfg.loss_weights) * cfg.loss_scale
                 self.opt.zero_grad(set_to_none=True)
                 loss.backward()
                 self.opt.step()
+                value = loss.item()
                 st["global_step"] += 1
                 st["step_in_epoch"] += 1
-                losses.append(loss.item())
-                samples += x.shape[0] * self.world
-                elapsed = time.perf_counter() - t_stage
+                st["stage_loss_sum"] += value
+                st["stage_steps"] += 1
+                st["stage_samples"] += x.shape[0] * self.world
+                st["stage_seconds"] = seconds0 + time.perf_counter() - t_segment
                 bar.update(1)
                 bar.set_postfix(
-                    loss=f"{losses[-1]:.3f}",
-                    samples_s=f"{samples / elapsed:.0f}",
+                    loss=f"{value:.3f}",
+                    samples_s=f"{st['stage_samples'] / st['stage_seconds']:.0f}",
                     epoch=st["epoch"],
                 )
                 if self.main and st["global_step"] % cfg.log_every == 0:
@@ -516,26 +541,22 @@ class Trainer:
                         {
                             "step": st["global_step"],
                             "epoch": st["epoch"],
-                            "loss": losses[-1],
+                            "loss": value,
                             "lr": self.opt.param_groups[0]["lr"],
                         },
                     )
-                    self.tb.add_scalar("train/loss", losses[-1], st["global_step"])
+                    self.tb.add_scalar("train/loss", value, st["global_step"])
                 if cfg.ckpt_every and st["global_step"] % cfg.ckpt_every == 0:
                     self.checkpoint("last")
                 if st["global_step"] >= total or stop:
                     break
                 t_data = time.perf_counter()
-            seconds = time.perf_counter() - t_stage
             if st["step_in_epoch"] >= self.steps_per_epoch:
                 st["epoch"] += 1
                 st["step_in_epoch"] = 0
                 self.sched.step()
             if stop:
                 self.checkpoint("last")
-                break
-            train_loss = float(np.mean(losses)) if losses else float("nan")
-            self.end_of_stage(train_loss, seconds, samples, wait)
         bar.close()
         if self.main:
             self.tb.close()

@@ -4,7 +4,10 @@ logs equal uninterrupted ones, and bad input is one line naming the flag with no
 
 from __future__ import annotations
 
+import csv
+import dataclasses
 import os
+import signal
 import subprocess
 from pathlib import Path
 
@@ -176,3 +179,97 @@ def test_stale_checkpoint_temporary_is_removed_on_start(tiny_dataset, tmp_path):
     trainer.setup()
     assert not any(p.exists() for p in stale)
     trainer.tb.close()
+
+
+# ------------------------------------------------------------------ resumed logs
+
+
+def _rows(path: Path) -> list[dict]:
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def _train(cfg: train.TrainConfig) -> None:
+    trainer = train.Trainer(cfg)
+    trainer.setup()
+    trainer.fit()
+
+
+def _config(data: Path, out: Path) -> train.TrainConfig:
+    return train_config(
+        "depthnet-tiny", data, out, batch_size=4, epochs=2, log_every=1, ckpt_every=0,
+        progress=False,
+    )  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def uninterrupted(tiny_dataset, tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("uninterrupted") / "run"
+    _train(_config(tiny_dataset, out))
+    return out
+
+
+def test_own_checkpoints_load_with_weights_only(uninterrupted):
+    """Trainer checkpoints (weights, optimiser and scheduler state, config) hold only what the
+    safe unpickler accepts."""
+    for name in ("last.pt", "best.pt"):
+        ck = torch.load(uninterrupted / "checkpoints" / name, weights_only=True)
+        assert ck["model_name"] == "depthnet-tiny" and ck["state"]["global_step"] == 14
+        assert ck["optimizer"]["state"] and ck["scheduler"]["milestones"]
+
+
+@pytest.mark.parametrize("stop_at", [3, 7], ids=["mid-epoch", "last-step-of-epoch"])
+def test_resumed_epoch_logs_the_uninterrupted_train_loss(
+    tiny_dataset,
+    uninterrupted,
+    tmp_path,
+    monkeypatch,
+    stop_at,
+):
+    """Ctrl-C after step ``stop_at`` (7 steps per epoch), then --resume: metrics.csv and
+    steps.csv equal those of an uninterrupted run."""
+    expected = _rows(uninterrupted / "metrics.csv")
+    assert [int(r["step"]) for r in expected] == [7, 14]
+    cfg = _config(tiny_dataset, tmp_path / "run")
+    loss, calls = train.multiscale_loss, []
+
+    def loss_then_ctrl_c(*args):
+        calls.append(1)
+        if len(calls) == stop_at:
+            signal.raise_signal(signal.SIGINT)
+        return loss(*args)
+
+    monkeypatch.setattr(train, "multiscale_loss", loss_then_ctrl_c)
+    with pytest.raises(KeyboardInterrupt):
+        _train(cfg)
+    assert len(calls) == stop_at
+    monkeypatch.setattr(train, "multiscale_loss", loss)
+    _train(dataclasses.replace(cfg, resume=True))
+    got = _rows(Path(cfg.out) / "metrics.csv")
+    assert [r["step"] for r in got] == [r["step"] for r in expected]
+    for g, e in zip(got, expected, strict=True):
+        assert float(g["train_loss"]) == pytest.approx(float(e["train_loss"]), rel=1e-9), g["step"]
+        assert float(g["val_mae"]) == pytest.approx(float(e["val_mae"]), rel=1e-6), g["step"]
+    steps = _rows(Path(cfg.out) / "steps.csv")
+    assert [int(r["step"]) for r in steps] == list(range(1, 15))
+
+
+def test_rerun_after_a_kill_before_the_first_checkpoint_starts_logs_afresh(
+    tiny_dataset,
+    tmp_path,
+):
+    """A run killed before any checkpoint leaves logs but nothing to resume: running the same
+    command again replaces them instead of appending duplicate rows."""
+    out = tmp_path / "run"
+    (out / "tb").mkdir(parents=True)
+    (out / "tb" / "events.out.tfevents.killed").write_bytes(b"")
+    with open(out / "steps.csv", "w") as f:
+        f.write("step,epoch,loss,lr\n" + "".join(f"{s},0,20.0,0.01\n" for s in (1, 2, 3)))
+    (out / "checkpoints").mkdir()
+    bench(
+        "run", "depthnet-tiny", "--data", tiny_dataset, "--batch-size", 4, "--max-steps", 2,
+        "--log-every", 1, "--quiet", "--out", out,
+    )  # fmt: skip
+    assert [int(r["step"]) for r in _rows(out / "steps.csv")] == [1, 2]
+    assert [int(r["step"]) for r in _rows(out / "metrics.csv")] == [2]
+    assert not (out / "tb" / "events.out.tfevents.killed").exists()
