@@ -28,6 +28,7 @@ from tqdm import tqdm
 os.environ.setdefault("OPENCV_IO_ENABLE_OPENEXR", "1")
 import cv2  # noqa: E402
 
+from stillbox_gen.dataset import MAX_DEPTH, NOMINAL_SHIFT  # noqa: E402
 from stillbox_gen.formats import (  # noqa: E402
     METADATA_JSON,
     UnsafePathError,
@@ -37,7 +38,6 @@ from stillbox_gen.formats import (  # noqa: E402
 
 from .flow import flow_from_depth  # noqa: E402
 
-MAX_DEPTH = 100.0  # metres: training targets and scores are clipped here (REFERENCE §3, §6)
 STILL_TARGET = 100.0  # target for identical frames: "no motion => infinitely far", saturated
 CACHE_LIMIT_BYTES = 8 * 1024**3
 
@@ -195,7 +195,12 @@ class PairDataset(torch.utils.data.Dataset):
     """
 
     def __init__(
-        self, store: FrameStore, mode: str, shift: int = 3, seed: int = 0, target: str = "depth"
+        self,
+        store: FrameStore,
+        mode: str,
+        shift: int = NOMINAL_SHIFT,
+        seed: int = 0,
+        target: str = "depth",
     ):
         if mode not in ("train", "eval"):
             raise ValueError(mode)

@@ -16,7 +16,7 @@ import click
 
 from . import config
 from .config import ConfigError
-from .stats import NOMINAL_SHIFT
+from .dataset import NOMINAL_SHIFT, default_root
 
 if TYPE_CHECKING:
     from .generate import RunOptions
@@ -220,8 +220,6 @@ def run_options(o: dict, cfg: config.DatasetConfig) -> RunOptions:
             raise ConfigError(f"--{flag}: must be at least 1, got {o[flag]}")
     if o["threads"] < 0:
         raise ConfigError(f"--threads: must be >= 0, got {o['threads']}")
-    c = cfg.camera
-    res = f"{c.width}" if c.width == c.height else f"{c.width}x{c.height}"
     shard = parse_shard(o["shard"]) if o["shard"] else (0, 1)
     timeout = o["scene_timeout"]
     if not (timeout > 0 and math.isfinite(timeout)):
@@ -239,7 +237,7 @@ def run_options(o: dict, cfg: config.DatasetConfig) -> RunOptions:
         ray_address=o["ray_address"],
         scene_timeout=o["scene_timeout"],
         shard=shard,
-        out=o["out"] or Path("data") / f"stillbox-{res}",
+        out=o["out"] or default_root(cfg.camera.width, cfg.camera.height),
         scenes=o["scenes"],
         workers=o["workers"],
         threads=o["threads"],

@@ -38,10 +38,7 @@ import numpy as np
 
 from . import formats
 from .config import ConfigError
-
-#: Nominal frame shift of a pair (i, i + S): the benchmark's fixed evaluation pairs and the
-#: displacement its depth targets are expressed for (3 frames of 0.1 m, as in the thesis).
-NOMINAL_SHIFT = 3
+from .dataset import MAX_DEPTH, NOMINAL_SHIFT
 
 #: Pixel-depth bands in metres: [0, 5), [5, 10), ..., [75, 100), then [100, inf) ("> 100", which
 #: also holds pixels whose ray met no surface, stored as formats.NO_SURFACE_DEPTH).
@@ -344,7 +341,7 @@ def dataset_stats(
     root: Path,
     scenes: int = 200,
     shift: int = NOMINAL_SHIFT,
-    max_depth: float = 100.0,
+    max_depth: float = MAX_DEPTH,
     progress: bool = False,
 ) -> dict:
     """Depth, wall/object, flow and residual statistics of the first ``scenes`` scenes.
@@ -749,7 +746,7 @@ def run(
     shift: int = NOMINAL_SHIFT,
     flicker: int = 0,
     out: Path | None = None,
-    max_depth: float = 100.0,
+    max_depth: float = MAX_DEPTH,
     progress: bool = True,
 ) -> dict:
     """Everything ``stillbox-gen stats`` does but printing: measure, then write stats.json and
