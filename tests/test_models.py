@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import model_fixture
+import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
@@ -257,3 +259,26 @@ def test_flownets_trains_on_flow():
         opt.step()
     with torch.no_grad():
         assert loss().item() < before.item()
+
+
+# --------------------------------------------------------------------------- checkpoint layout
+
+FIXTURE = model_fixture.load()
+
+
+@pytest.mark.parametrize("name", sorted(FIXTURE["models"]))
+def test_state_dict_layout_and_outputs_are_those_of_the_fixture(name):
+    """Names, shapes and order of every state_dict entry and parameter as recorded before
+    DepthNet and FlowNetS shared their code (checkpoints load with strict=True, optimiser states
+    keep their order); a checkpoint built from those names alone loads strictly and gives the
+    recorded outputs; seed 0 gives the recorded initial weights."""
+    want = FIXTURE["models"][name]
+    got = model_fixture.describe(name)
+    assert list(got["state_dict"].items()) == list(want["state_dict"].items())
+    assert got["parameters"] == want["parameters"]
+    for mode, out in want["outputs"].items():
+        np.testing.assert_allclose(got["outputs"][mode]["sums"], out["sums"], rtol=1e-5)
+    if model_fixture.environment() == FIXTURE["environment"]:  # same CPU kernels: bit-exact
+        assert got["init_sha256"] == want["init_sha256"]
+        for mode, out in want["outputs"].items():
+            assert got["outputs"][mode]["sha256"] == out["sha256"], mode
