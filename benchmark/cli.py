@@ -13,7 +13,8 @@ from typing import TYPE_CHECKING
 
 import click
 
-from . import models
+from . import registry
+from .models import count_parameters
 
 if TYPE_CHECKING:
     import torch
@@ -66,11 +67,11 @@ def _training_options(o: dict) -> None:
 
 def _models_option(value: str) -> list[str]:
     names = [n.strip() for n in value.split(",") if n.strip()]
-    unknown = [n for n in names if n not in models.MODELS]
+    unknown = [n for n in names if n not in registry.MODELS]
     if not names or unknown:
         raise UserError(
             f"--models: unknown {', '.join(map(repr, unknown)) or 'empty list'} "
-            f"(registered: {', '.join(models.list_models())})"
+            f"(registered: {', '.join(registry.list_models())})"
         )
     return names
 
@@ -109,10 +110,10 @@ def cli() -> None:
 @cli.command("list")
 def list_cmd() -> None:
     """Registered models with their parameter counts."""
-    for name in models.list_models():
-        spec = models.MODELS[name]
+    for name in registry.list_models():
+        spec = registry.MODELS[name]
         if spec.trainable:
-            n = f"{models.count_parameters(spec.build()) / 1e6:7.2f} M parameters"
+            n = f"{count_parameters(spec.build()) / 1e6:7.2f} M parameters"
         else:
             n = f"{'no network':>20s}"
         click.echo(f"{name:20s} {n}  {spec.description}")
@@ -180,10 +181,11 @@ def run(model: str, data: Path, out: Path | None, **o) -> None:
     Methods without a network (oracle-flow, constant) are scored directly; training options are
     ignored for them.
     """
-    if model not in models.MODELS:
-        raise UserError(f"MODEL: unknown '{model}' (registered: {', '.join(models.list_models())})")
+    if model not in registry.MODELS:
+        known = ", ".join(registry.list_models())
+        raise UserError(f"MODEL: unknown '{model}' (registered: {known})")
     data = _dataset_dir(data)
-    trainable = models.MODELS[model].trainable
+    trainable = registry.MODELS[model].trainable
     if o["resume"] and (out is None or not (out / "checkpoints" / "last.pt").is_file()):
         raise UserError(
             "--resume: give the --out folder of an earlier run (with checkpoints/last.pt)"
@@ -434,7 +436,7 @@ def speed(
     from . import speed as sp
 
     chosen = _models_option(names)
-    no_net = [n for n in chosen if not models.MODELS[n].trainable]
+    no_net = [n for n in chosen if not registry.MODELS[n].trainable]
     if no_net:
         raise UserError(f"--models: {', '.join(no_net)} ha(s) no network to time")
     sizes = _int_list("--resolutions", resolutions)

@@ -1,56 +1,148 @@
-"""Networks of the StillBox benchmark and the registry that names them.
+"""DepthNet and FlowNetS: one FlowNetS-style encoder-decoder with two sets of layers and heads.
 
-Registered methods (``MODELS``): DepthNet (depth directly), FlowNetS with a depth head, FlowNetS
-for optical flow followed by depth from flow and the known translation (benchmark.flow), the same
-geometry fed with ground-truth flow (``oracle-flow``) and a constant depth (``constant``); the last
-two have no network. FlowNetS lives in benchmark.flownets.
+Both read two stacked RGB frames, ``(B, 6, H, W)`` with H and W multiples of 64, and predict at
+five scales, finest first: ``(B, C, H/4, W/4)``, …, ``(B, C, H/64, W/64)`` in train and eval
+mode. The encoder is ``conv1`` … ``conv6_1`` (six stride-2 stages), the decoder runs from 1/64 up
+to 1/4: at each scale a 3×3 ``predict_<head>`` conv gives a *raw* prediction, a bias-free 4×4
+stride-2 transposed conv (``upsampled_<head>6_to_5`` …) upsamples it, and the next scale's
+features are (skip features, ``deconv`` output, upsampled raw prediction) concatenated.
 
-DepthNet (Pinard et al., thesis section 3.5) is FlowNetS with every width halved, 3×3 kernels
-everywhere, BatchNorm and a 1-channel depth output. It reads two stacked RGB frames,
-(B, 6, H, W), and predicts depth in metres at five scales, finest (H/4) first.
+- :class:`DepthNet` (thesis 3.5, REFERENCE §4): FlowNetS at half width, 3×3 kernels, ReLU,
+  BatchNorm (eps 1e-3), deconvs followed by a 3×3 conv, ``predict_depth`` convs with bias, one
+  channel of depth in metres through "1 + ELU". 10,290,473 parameters.
+- :class:`FlowNetS` (Dosovitskiy et al. 2015, REFERENCE §4): kernels 7, 5, 5 then 3×3,
+  LeakyReLU(0.1), optional BatchNorm on the encoder, single transposed-conv deconvs, bias-free
+  ``predict_flow`` convs; a flow head (2 channels, pixels) or a depth head (1 channel, metres).
 
-Module names follow the public DepthNet code (``conv1`` … ``conv6_1``, ``deconv5`` …,
-``predict_depth6`` …, ``upsampled_depth6_to_5`` …) and each block is an ``nn.Sequential`` of the
-same layers, so a batch-norm DepthNet checkpoint from that code loads with ``load_state_dict``.
+Module names, order and shapes are those of the public DepthNet and FlowNetS code (and of this
+project's earlier checkpoints; tests/fixtures/models.json), so their state_dicts load with
+``load_state_dict(strict=True)``. The registry of methods is :mod:`benchmark.registry`.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
-from dataclasses import dataclass, field
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-from .flownets import FlowNetS, check_frame_pair
-
 BN_EPS = 1e-3
-DEPTH_CLAMP_M = (10.0, 60.0)  # range of the optional output clamp, metres (as the public code)
+DEPTH_CLAMP_M = (10.0, 60.0)  # range of DepthNet's optional output clamp, metres (public code)
+FLOW_DIV = 20.0  # FlowNetS works in flow / 20 (the public code's div_flow)
+LEAKY_SLOPE = 0.1  # FlowNetS's LeakyReLU
+
+ENCODER = ("conv1", "conv2", "conv3", "conv3_1", "conv4", "conv4_1", "conv5", "conv5_1")
+ENCODER += ("conv6", "conv6_1")
+DECODER_SCALES = (6, 5, 4, 3, 2)  # 1/64 … 1/4: predict_<head>6 … predict_<head>2
 
 
-def _conv(c_in: int, c_out: int, stride: int, batch_norm: bool) -> nn.Sequential:
-    """3×3 conv (padding 1) → [BatchNorm] → ReLU; the conv has no bias when BN follows it."""
-    layers: list[nn.Module] = [nn.Conv2d(c_in, c_out, 3, stride, 1, bias=not batch_norm)]
-    if batch_norm:
+def check_frame_pair(x: torch.Tensor, name: str, in_channels: int, min_multiple: int) -> None:
+    """ValueError unless ``x`` is (B, in_channels, H, W) with H and W multiples of min_multiple."""
+    if x.dim() != 4 or x.shape[1] != in_channels:
+        raise ValueError(
+            f"{name} expects a (B, {in_channels}, H, W) tensor (two RGB frames stacked "
+            f"on the channel axis), got shape {tuple(x.shape)}"
+        )
+    h, w = x.shape[-2:]
+    if h % min_multiple or w % min_multiple:
+        raise ValueError(
+            f"{name} needs height and width that are multiples of {min_multiple} "
+            f"(six stride-2 stages), got {h}x{w}"
+        )
+
+
+def conv_bn(c_in: int, c_out: int, k: int, stride: int, bn: bool, act: nn.Module) -> list:
+    """k×k conv (padding (k−1)/2, no bias when BatchNorm(eps 1e-3) follows) → [BN] → ``act``."""
+    layers: list[nn.Module] = [nn.Conv2d(c_in, c_out, k, stride, (k - 1) // 2, bias=not bn)]
+    if bn:
         layers.append(nn.BatchNorm2d(c_out, eps=BN_EPS))
-    return nn.Sequential(*layers, nn.ReLU(inplace=True))
+    return [*layers, act]
 
 
-def _deconv(c_in: int, c_out: int, batch_norm: bool) -> nn.Sequential:
-    """×2 upsampling block: 4×4 stride-2 transposed conv (with bias) → 3×3 conv → [BN] → ReLU."""
-    layers: list[nn.Module] = [
-        nn.ConvTranspose2d(c_in, c_out, 4, 2, 1, bias=True),
-        nn.Conv2d(c_out, c_out, 3, 1, 1, bias=not batch_norm),
-    ]
-    if batch_norm:
-        layers.append(nn.BatchNorm2d(c_out, eps=BN_EPS))
-    return nn.Sequential(*layers, nn.ReLU(inplace=True))
+def upconv(c_in: int, c_out: int, bias: bool = False) -> nn.ConvTranspose2d:
+    """×2 upsampling: 4×4 stride-2 transposed conv, padding 1."""
+    return nn.ConvTranspose2d(c_in, c_out, 4, 2, 1, bias=bias)
 
 
-class DepthNet(nn.Module):
-    """DepthNet: depth from two stacked frames, multi-scale output.
+class EncoderDecoder(nn.Module):
+    """The shared network; subclasses give the blocks, the head name, init and activation.
+
+    Subclasses set ``head`` ("depth" or "flow": the names of the prediction layers),
+    ``predict_bias``, and implement :meth:`conv_block`, :meth:`deconv_block`,
+    :meth:`reset_parameters` and :meth:`activate`; their ``__init__`` calls :meth:`build`.
+    """
+
+    in_channels = 6
+    min_multiple = 64  # six stride-2 stages
+    head = "depth"
+    predict_bias = True
+
+    def __init__(self, width: float, batch_norm: bool):
+        super().__init__()
+        if not width > 0:
+            raise ValueError(f"width must be > 0, got {width}")
+        self.width, self.batch_norm = width, batch_norm
+
+    def scaled(self, *channels: int) -> tuple[int, ...]:
+        """Hidden channel counts times ``width``, rounded, at least 1."""
+        return tuple(max(1, round(n * self.width)) for n in channels)
+
+    def conv_block(self, c_in: int, c_out: int, k: int, stride: int) -> nn.Sequential:
+        raise NotImplementedError
+
+    def deconv_block(self, c_in: int, c_out: int) -> nn.Sequential:
+        raise NotImplementedError
+
+    def activate(self, raw: torch.Tensor) -> torch.Tensor:
+        raise NotImplementedError
+
+    def build(self, encoder: tuple, kernels: tuple, decoder: tuple, out_channels: int) -> None:
+        """Register the layers, in the public code's order.
+
+        ``encoder``: channels of conv1, conv2, conv3, conv4, conv5, conv6 (each ``convN_1``
+        keeps its width); ``kernels``: of conv1, conv2, conv3 (3×3 from conv3_1 on);
+        ``decoder``: channels of deconv5 … deconv2; ``out_channels``: per prediction.
+        """
+        c1, c2, c3, c4, c5, c6 = encoder
+        n = self.out_channels = out_channels
+        k1, k2, k3 = kernels
+        plan = [(self.in_channels, c1, k1, 2), (c1, c2, k2, 2), (c2, c3, k3, 2), (c3, c3, 3, 1)]
+        plan += [(c3, c4, 3, 2), (c4, c4, 3, 1), (c4, c5, 3, 2), (c5, c5, 3, 1)]
+        plan += [(c5, c6, 3, 2), (c6, c6, 3, 1)]
+        for name, args in zip(ENCODER, plan, strict=True):
+            setattr(self, name, self.conv_block(*args))
+        # decoder input at each scale: skip features + deconv output + upsampled prediction
+        cats = [c + d + n for c, d in zip((c5, c4, c3, c2), decoder, strict=True)]
+        for k, c_in, c_out in zip((5, 4, 3, 2), [c6, *cats[:3]], decoder, strict=True):
+            setattr(self, f"deconv{k}", self.deconv_block(c_in, c_out))
+        for k, c_in in zip(DECODER_SCALES, [c6, *cats], strict=True):
+            predict = nn.Conv2d(c_in, n, 3, 1, 1, bias=self.predict_bias)
+            setattr(self, f"predict_{self.head}{k}", predict)
+        for k in DECODER_SCALES[:-1]:
+            setattr(self, f"upsampled_{self.head}{k}_to_{k - 1}", upconv(n, n))
+
+    def forward(self, x: torch.Tensor) -> list[torch.Tensor]:
+        """(B, 6, H, W) → [(B, C, H/4, W/4), …, (B, C, H/64, W/64)], finest first."""
+        check_frame_pair(x, type(self).__name__, self.in_channels, self.min_multiple)
+        out_conv2 = self.conv2(self.conv1(x))
+        out_conv3 = self.conv3_1(self.conv3(out_conv2))
+        out_conv4 = self.conv4_1(self.conv4(out_conv3))
+        out_conv5 = self.conv5_1(self.conv5(out_conv4))
+        features = self.conv6_1(self.conv6(out_conv5))
+        raw = getattr(self, f"predict_{self.head}6")(features)
+        raws = [raw]
+        for k, skip in zip((5, 4, 3, 2), (out_conv5, out_conv4, out_conv3, out_conv2), strict=True):
+            upsample = getattr(self, f"upsampled_{self.head}{k + 1}_to_{k}")
+            # the *raw* (pre-activation) prediction is upsampled, as in the public code
+            features = torch.cat((skip, getattr(self, f"deconv{k}")(features), upsample(raw)), 1)
+            raw = getattr(self, f"predict_{self.head}{k}")(features)
+            raws.append(raw)
+        return [self.activate(r) for r in reversed(raws)]
+
+
+class DepthNet(EncoderDecoder):
+    """DepthNet: depth from two stacked frames, multi-scale output (module doc).
 
     Args:
         width: multiplies every hidden channel count (rounded, at least 1); 1.0 is the
@@ -60,60 +152,29 @@ class DepthNet(nn.Module):
         clamp: clamp every output to [10, 60] m after the activation, as the public code's
             ``clamp`` option (off by default; it zeroes gradients outside that range).
 
-    ``forward(x)``: ``x`` is (B, 6, H, W), H and W multiples of 64 (the two frames stacked on
-    the channel axis, normalised as the data pipeline chooses). Returns a list of 5 tensors of
-    depth in metres, > 0 by the "1 + ELU" activation (computed as ``F.elu(x) + 1``, which in
-    float32 rounds to exactly 0 for raw values below about -17), finest first:
-    (B, 1, H/4, W/4), (B, 1, H/8, W/8), …, (B, 1, H/64, W/64) -- in both train and eval
-    mode (the public code returns only the finest map in eval mode and drops the channel axis).
+    Outputs are depth in metres, > 0 by "1 + ELU" (computed as ``F.elu(x) + 1``, which in float32
+    rounds to exactly 0 for raw values below about -17), in train and eval mode (the public code
+    returns only the finest map in eval mode and drops the channel axis).
     """
 
-    in_channels = 6
-    min_multiple = 64  # six stride-2 stages
+    head = "depth"
+    predict_bias = True
 
     def __init__(self, width: float = 1.0, batch_norm: bool = True, clamp: bool = False):
-        super().__init__()
-        if not width > 0:
-            raise ValueError(f"width must be > 0, got {width}")
-        self.width, self.batch_norm, self.clamp = width, batch_norm, clamp
-
-        def c(n: int) -> int:
-            return max(1, round(n * width))
-
-        bn = batch_norm
-        c1, c2, c3, c4, c5, c6 = (c(n) for n in (32, 64, 128, 256, 256, 512))
-        self.conv1 = _conv(self.in_channels, c1, 2, bn)  # 1/2
-        self.conv2 = _conv(c1, c2, 2, bn)  # 1/4
-        self.conv3 = _conv(c2, c3, 2, bn)  # 1/8
-        self.conv3_1 = _conv(c3, c3, 1, bn)
-        self.conv4 = _conv(c3, c4, 2, bn)  # 1/16
-        self.conv4_1 = _conv(c4, c4, 1, bn)
-        self.conv5 = _conv(c4, c5, 2, bn)  # 1/32
-        self.conv5_1 = _conv(c5, c5, 1, bn)
-        self.conv6 = _conv(c5, c6, 2, bn)  # 1/64
-        self.conv6_1 = _conv(c6, c6, 1, bn)
-
-        # Decoder input at scale s = skip features + deconv output + upsampled raw prediction:
-        # 256+256+1 = 513 (1/32), 256+128+1 = 385 (1/16), 128+64+1 = 193 (1/8), 64+32+1 = 97 (1/4).
-        d5, d4, d3, d2 = (c(n) for n in (256, 128, 64, 32))
-        cat5, cat4, cat3, cat2 = c5 + d5 + 1, c4 + d4 + 1, c3 + d3 + 1, c2 + d2 + 1
-        self.deconv5 = _deconv(c6, d5, bn)
-        self.deconv4 = _deconv(cat5, d4, bn)
-        self.deconv3 = _deconv(cat4, d3, bn)
-        self.deconv2 = _deconv(cat3, d2, bn)
-
-        self.predict_depth6 = nn.Conv2d(c6, 1, 3, 1, 1)
-        self.predict_depth5 = nn.Conv2d(cat5, 1, 3, 1, 1)
-        self.predict_depth4 = nn.Conv2d(cat4, 1, 3, 1, 1)
-        self.predict_depth3 = nn.Conv2d(cat3, 1, 3, 1, 1)
-        self.predict_depth2 = nn.Conv2d(cat2, 1, 3, 1, 1)
-
-        self.upsampled_depth6_to_5 = nn.ConvTranspose2d(1, 1, 4, 2, 1, bias=False)
-        self.upsampled_depth5_to_4 = nn.ConvTranspose2d(1, 1, 4, 2, 1, bias=False)
-        self.upsampled_depth4_to_3 = nn.ConvTranspose2d(1, 1, 4, 2, 1, bias=False)
-        self.upsampled_depth3_to_2 = nn.ConvTranspose2d(1, 1, 4, 2, 1, bias=False)
-
+        super().__init__(width, batch_norm)
+        self.clamp = clamp
+        encoder = self.scaled(32, 64, 128, 256, 256, 512)
+        self.build(encoder, (3, 3, 3), self.scaled(256, 128, 64, 32), 1)
         self.reset_parameters()
+
+    def conv_block(self, c_in: int, c_out: int, k: int, stride: int) -> nn.Sequential:
+        """conv → [BN] → ReLU."""
+        return nn.Sequential(*conv_bn(c_in, c_out, k, stride, self.batch_norm, nn.ReLU(True)))
+
+    def deconv_block(self, c_in: int, c_out: int) -> nn.Sequential:
+        """4×4 stride-2 transposed conv (with bias) → 3×3 conv → [BN] → ReLU."""
+        tail = conv_bn(c_out, c_out, 3, 1, self.batch_norm, nn.ReLU(inplace=True))
+        return nn.Sequential(upconv(c_in, c_out, bias=True), *tail)
 
     def reset_parameters(self) -> None:
         """Initialise as the public code: conv and transposed-conv weights ~ N(0, 2 / (k·k·C_out)),
@@ -130,170 +191,70 @@ class DepthNet(nn.Module):
                 nn.init.ones_(m.weight)
                 nn.init.zeros_(m.bias)
 
-    def _activate(self, raw: torch.Tensor) -> torch.Tensor:
+    def activate(self, raw: torch.Tensor) -> torch.Tensor:
         """Raw prediction → depth (m): 1 + ELU, i.e. 1 + x for x > 0 and e^x otherwise."""
         depth = F.elu(raw) + 1.0
         return depth.clamp(*DEPTH_CLAMP_M) if self.clamp else depth
 
-    def forward(self, x: torch.Tensor) -> list[torch.Tensor]:
-        """(B, 6, H, W) → [(B, 1, H/4, W/4), (B, 1, H/8, W/8), …, (B, 1, H/64, W/64)], metres."""
-        check_frame_pair(x, "DepthNet", self.in_channels, self.min_multiple)
-        out_conv2 = self.conv2(self.conv1(x))
-        out_conv3 = self.conv3_1(self.conv3(out_conv2))
-        out_conv4 = self.conv4_1(self.conv4(out_conv3))
-        out_conv5 = self.conv5_1(self.conv5(out_conv4))
-        features = self.conv6_1(self.conv6(out_conv5))
 
-        raw = self.predict_depth6(features)
-        raws = [raw]
-        stages = (
-            (out_conv5, self.deconv5, self.upsampled_depth6_to_5, self.predict_depth5),
-            (out_conv4, self.deconv4, self.upsampled_depth5_to_4, self.predict_depth4),
-            (out_conv3, self.deconv3, self.upsampled_depth4_to_3, self.predict_depth3),
-            (out_conv2, self.deconv2, self.upsampled_depth3_to_2, self.predict_depth2),
-        )
-        for skip, deconv, upsample, predict in stages:
-            # The *raw* (pre-activation) prediction is upsampled, as in the public code.
-            features = torch.cat((skip, deconv(features), upsample(raw)), dim=1)
-            raw = predict(features)
-            raws.append(raw)
-        return [self._activate(r) for r in reversed(raws)]
+class FlowNetS(EncoderDecoder):
+    """FlowNetS with a flow or a depth head (module doc).
 
-
-# --------------------------------------------------------------------------- registry
-
-
-def _depthnet_defaults() -> dict:
-    """Training hyper-parameters of the thesis recipe at 64/128 px (REFERENCE §5)."""
-    return {
-        "lr": 1e-2,
-        "batch_size": 256,
-        "epochs": 55,
-        "momentum": 0.9,
-        "dampening": 0.9,
-        "weight_decay": 4e-4,
-        # lr × gamma at these fractions of the epoch count (epochs 19, 30, 44, 53 of 55)
-        "milestones": [19 / 55, 30 / 55, 44 / 55, 53 / 55],
-        "gamma": 0.3,
-        # loss weight per output, finest (1/4) to coarsest (1/64)
-        "loss_weights": (0.32, 0.08, 0.02, 0.01, 0.005),
-    }
-
-
-def _flow_defaults() -> dict:
-    """The public FlowNetS flow recipe: Adam (lr 1e-4, betas 0.9/0.999, weight decay 4e-4), loss
-    in flow / 20; batch, epochs and lr steps as DepthNet. DepthNet's SGD at lr 0.01 did not learn
-    flow here (64 px, 2 epochs: predictions uncorrelated with the truth, EPE 10.7 px against
-    3.0 px for zero flow)."""
-    return {
-        **_depthnet_defaults(),
-        "optimizer": "adam",
-        "lr": 1e-4,
-        "momentum": 0.9,
-        "beta2": 0.999,
-        "loss_scale": 1.0 / 20.0,
-    }
-
-
-#: what a method outputs: a depth network, a flow network (depth by geometry), or no network
-OUTPUTS = ("depth", "flow", "oracle-flow", "constant")
-
-
-@dataclass(frozen=True)
-class ModelSpec:
-    """A registered method.
-
-    ``build()`` returns a freshly initialised network, or is None for methods without one
-    (``oracle-flow``, ``constant``: nothing to train). ``output`` says what the network predicts
-    and how depth is obtained: "depth" (metres, multi-scale list as DepthNet), "flow" (pixels,
-    multi-scale list; depth from flow and the known translation), "oracle-flow" (ground-truth
-    flow through the same geometry), "constant" (the training set's median depth everywhere).
-    ``defaults`` are its training hyper-parameters (copy before modifying).
+    Args:
+        output: ``"flow"``: 2 channels, optical flow in pixels of the *input* resolution at every
+            scale (targets are area-downsampled without rescaling their values, as the public
+            code); the network works in flow / 20 and multiplies its outputs by 20, so train with
+            the loss divided by 20 to reproduce the original loss scale. ``"depth"`` (thesis
+            Table 3.5): 1 channel, metres, through DepthNet's "1 + ELU".
+        width: multiplies every hidden channel count (rounded, at least 1); 1.0 is the
+            published network, small values give cheap variants for tests.
+        batch_norm: BatchNorm (eps 1e-3) after every encoder conv, whose bias is then dropped
+            (the public ``flownets_bn``).
     """
 
-    name: str
-    description: str
-    build: Callable[[], nn.Module] | None
-    output: str = "depth"
-    defaults: dict = field(default_factory=_depthnet_defaults)
+    head = "flow"  # module names follow the public code for both heads
+    predict_bias = False
 
-    @property
-    def trainable(self) -> bool:
-        return self.build is not None
+    def __init__(self, output: str = "flow", width: float = 1.0, batch_norm: bool = False):
+        if output not in ("flow", "depth"):
+            raise ValueError(f"output must be 'flow' or 'depth', got {output!r}")
+        super().__init__(width, batch_norm)
+        self.output = output
+        encoder = self.scaled(64, 128, 256, 512, 512, 1024)
+        n = 2 if output == "flow" else 1
+        self.build(encoder, (7, 5, 5), self.scaled(512, 256, 128, 64), n)
+        self.reset_parameters()
 
+    def conv_block(self, c_in: int, c_out: int, k: int, stride: int) -> nn.Sequential:
+        """conv → [BN] → LeakyReLU(0.1)."""
+        act = nn.LeakyReLU(LEAKY_SLOPE, inplace=True)
+        return nn.Sequential(*conv_bn(c_in, c_out, k, stride, self.batch_norm, act))
 
-MODELS: dict[str, ModelSpec] = {
-    spec.name: spec
-    for spec in (
-        ModelSpec(
-            "depthnet",
-            "DepthNet (FlowNetS at half width, BN, 1+ELU depth output), ~10.3 M parameters",
-            lambda: DepthNet(width=1.0),
-        ),
-        ModelSpec(
-            "depthnet-tiny",
-            "DepthNet at 1/8 width, for tests and smoke runs",
-            lambda: DepthNet(width=0.125),
-        ),
-        ModelSpec(
-            "flownets-depth",
-            "FlowNetS (BN) with a 1-channel 1+ELU depth output, trained like DepthNet",
-            lambda: FlowNetS("depth", batch_norm=True),
-        ),
-        ModelSpec(
-            "flownets-depth-tiny",
-            "flownets-depth at 1/8 width, for tests and smoke runs",
-            lambda: FlowNetS("depth", width=0.125, batch_norm=True),
-        ),
-        ModelSpec(
-            "flownets-flow",
-            "FlowNetS (BN) for optical flow; depth from flow and the known translation",
-            lambda: FlowNetS("flow", batch_norm=True),
-            output="flow",
-            defaults=_flow_defaults(),
-        ),
-        ModelSpec(
-            "flownets-flow-tiny",
-            "flownets-flow at 1/8 width, for tests and smoke runs",
-            lambda: FlowNetS("flow", width=0.125, batch_norm=True),
-            output="flow",
-            defaults=_flow_defaults(),
-        ),
-        ModelSpec(
-            "oracle-flow",
-            "ground-truth flow -> depth by the FOE geometry (checks geometry vs metadata)",
-            None,
-            output="oracle-flow",
-            defaults={},
-        ),
-        ModelSpec(
-            "constant",
-            "the training set's median depth at every pixel (the floor to beat)",
-            None,
-            output="constant",
-            defaults={},
-        ),
-    )
-}
+    def deconv_block(self, c_in: int, c_out: int) -> nn.Sequential:
+        """4×4 stride-2 transposed conv (no bias) → LeakyReLU(0.1)."""
+        return nn.Sequential(upconv(c_in, c_out), nn.LeakyReLU(LEAKY_SLOPE, inplace=True))
 
+    def reset_parameters(self) -> None:
+        """As the public FlowNetS code: kaiming-normal (fan-in, LeakyReLU slope 0.1) conv and
+        transposed-conv weights, zero biases, BatchNorm weight 1 / bias 0. Except: the flow
+        head's ``predict_flow*`` convs start at zero, so an untrained network predicts zero flow
+        (with kaiming weights it predicts ~10-20 px of random flow, and the short CPU trainings
+        here ended worse than zero flow: EPE 9-11 px against 3.0 px)."""
+        for name, m in self.named_modules():
+            if isinstance(m, nn.Conv2d | nn.ConvTranspose2d):
+                if self.output == "flow" and name.startswith("predict_flow"):
+                    nn.init.zeros_(m.weight)
+                else:
+                    nn.init.kaiming_normal_(m.weight, LEAKY_SLOPE)
+                if m.bias is not None:
+                    nn.init.zeros_(m.bias)
+            elif isinstance(m, nn.BatchNorm2d):
+                nn.init.ones_(m.weight)
+                nn.init.zeros_(m.bias)
 
-def list_models() -> list[str]:
-    """Registered model names, sorted."""
-    return sorted(MODELS)
-
-
-def build_model(name: str) -> nn.Module:
-    """A freshly initialised network by registry name; ValueError for an unknown name or a
-    method without a network (oracle-flow, constant)."""
-    try:
-        spec = MODELS[name]
-    except KeyError:
-        raise ValueError(
-            f"unknown model {name!r}; registered models: {', '.join(list_models())}"
-        ) from None
-    if spec.build is None:
-        raise ValueError(f"{name!r} has no network (nothing to build or train)")
-    return spec.build()
+    def activate(self, raw: torch.Tensor) -> torch.Tensor:
+        """Raw prediction → flow (pixels, × 20) or depth (metres, 1 + ELU)."""
+        return raw * FLOW_DIV if self.output == "flow" else F.elu(raw) + 1.0
 
 
 def count_parameters(model: nn.Module) -> int:

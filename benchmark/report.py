@@ -13,7 +13,7 @@ import numpy as np
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
-from . import metrics, models, plots  # noqa: E402
+from . import metrics, plots, registry  # noqa: E402
 from .evaluate import EvalResult  # noqa: E402
 
 COLUMNS = ("mae", "mre", "mle", "sae", "sle", "p1.25", "p1.25^2", "p1.25^3", "depth_error", "epe")
@@ -143,7 +143,7 @@ def write_run_report(run: Path, model: str, result: EvalResult, info: dict) -> d
         plots.sample_grid(result.samples, plot_dir / "samples.png")
     if (run / "metrics.csv").exists():
         learning_curve(run / "metrics.csv", plot_dir / "learning_curve.png")
-    output = models.MODELS[model].output if model in models.MODELS else "depth"
+    output = registry.MODELS[model].output if model in registry.MODELS else "depth"
     bins = foe_bins(px["foe_distance"], px["abs_err"]) if px else []
     formulas = {**metrics.FORMULAS, "depth_error": DEPTH_ERROR_FORMULA}
     if "epe" in result.summary:

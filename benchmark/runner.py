@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import models
+from . import registry
 from .data import MAX_DEPTH, FrameStore, PairDataset, Scene, load_scenes, read_depth
 from .evaluate import Method, evaluate
 from .report import foe_bins, foe_table, write_run_report
@@ -72,12 +72,12 @@ def score_checkpoint(
     dev = resolve_device(device)
     ck = load_checkpoint(ckpt, "--ckpt")
     name = ck["model_name"]
-    model = models.build_model(name)
+    model = registry.build_model(name)
     load_weights(model, ck, f"--ckpt {ckpt}", name)
     model.to(dev)
     shift = ck.get("shift", 3)
     split, scenes, dataset = eval_split(data, split, shift, progress)
-    method = Method(models.MODELS[name].output, model, ck["nominal_displacement"])
+    method = Method(registry.MODELS[name].output, model, ck["nominal_displacement"])
     t0 = time.perf_counter()
     result = evaluate(
         method, dataset, dev, batch_size, predictions_dir=_predictions_dir(out, save_predictions)
@@ -111,7 +111,7 @@ def score_baseline(
     progress: bool = True,
 ) -> dict:
     """Score a method without a network (oracle-flow, constant); writes the run folder."""
-    spec = models.MODELS[name]
+    spec = registry.MODELS[name]
     if spec.trainable:
         raise ValueError(f"{name}: a network; train it with 'run'")
     dev = resolve_device(device)
@@ -195,15 +195,14 @@ def train_and_score(cfg: TrainConfig) -> dict | None:
 
 def train_config(model: str, data: Path, out: Path, **overrides) -> TrainConfig:
     """The model's registry defaults, then ``overrides`` (None values ignored)."""
-    names = {f.name for f in dataclasses.fields(TrainConfig)}
-    defaults = {k: v for k, v in models.MODELS[model].defaults.items() if k in names}
-    cfg = TrainConfig(model=model, data=str(data), out=str(out), **defaults)
+    recipe = dataclasses.asdict(registry.MODELS[model].recipe)
+    cfg = TrainConfig(model=model, data=str(data), out=str(out), **recipe)
     return dataclasses.replace(cfg, **{k: v for k, v in overrides.items() if v is not None})
 
 
 def run_method(model: str, data: Path, out: Path, **overrides) -> dict | None:
     """``stillbox-bench run``: train and score a network, or score a method without one."""
-    spec = models.MODELS[model]
+    spec = registry.MODELS[model]
     if not spec.trainable:
         o = {k: overrides[k] for k in ("device", "save_predictions") if k in overrides}
         o = {k: v for k, v in o.items() if v is not None}

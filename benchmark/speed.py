@@ -19,7 +19,7 @@ from pathlib import Path
 
 import torch
 
-from . import models
+from . import models, registry
 
 DEFAULT_MODELS = ("depthnet", "flownets-depth", "flownets-flow")
 DEFAULT_MAC_SIZES = (64, 128, 256, 512)
@@ -79,7 +79,7 @@ def measure(
     rows = []
     for name in names:
         torch.manual_seed(0)
-        model = models.build_model(name).to(device).eval()
+        model = registry.build_model(name).to(device).eval()
         row: dict = {"model": name, "params_m": round(models.count_parameters(model) / 1e6, 3)}
         for s in mac_sizes:
             row[f"gmac_{s}"] = round(models.macs(model, s, s) / 1e9, 6)

@@ -33,7 +33,7 @@ import torch
 import torch.nn.functional as F
 from tqdm import tqdm
 
-from . import evaluate, models
+from . import evaluate, registry
 from .data import EpochSampler, FrameStore, PairDataset, load_scenes
 
 
@@ -205,7 +205,8 @@ def load_checkpoint(path: str | Path, flag: str | None = None) -> dict:
             f"{', '.join(map(repr, CHECKPOINT_KEYS))}, as 'run' writes)"
         )
     name = ck["model_name"]
-    if not isinstance(name, str) or name not in models.MODELS or not models.MODELS[name].trainable:
+    spec = registry.MODELS.get(name) if isinstance(name, str) else None
+    if spec is None or not spec.trainable:
         raise ValueError(f"{where}: unknown model name {name!r} in the checkpoint")
     if not isinstance(ck["model"], dict):
         raise ValueError(f"{where}: its 'model' entry is not a state_dict")
@@ -296,7 +297,7 @@ class Trainer:
         nothing behind."""
         cfg = self.cfg
         torch.manual_seed(cfg.seed)
-        spec = models.MODELS[cfg.model]
+        spec = registry.MODELS[cfg.model]
         if not spec.trainable:
             raise ValueError(f"{cfg.model}: has no network to train")
         last = self.ckpt_dir / "last.pt"

@@ -32,16 +32,10 @@ from pathlib import Path
 
 import torch
 
+from benchmark import registry
+
 FIXTURE = Path(__file__).parent / "fixtures" / "models.json"
 INPUT_SHAPE = (2, 6, 64, 128)
-
-
-def _registry():
-    try:
-        from benchmark import registry
-    except ImportError:  # before the registry had its own module
-        from benchmark import models as registry
-    return registry
 
 
 def environment() -> dict:
@@ -88,7 +82,7 @@ def outputs(model: torch.nn.Module, train: bool) -> dict:
 def describe(name: str) -> dict:
     """The record of registered network ``name`` (see the module doc)."""
     torch.manual_seed(0)
-    model = _registry().build_model(name)
+    model = registry.build_model(name)
     state = model.state_dict()
     shapes = {k: list(v.shape) for k, v in state.items()}
     init = sha256(state.values())
@@ -102,8 +96,7 @@ def describe(name: str) -> dict:
 
 
 def trainable() -> list[str]:
-    reg = _registry()
-    return [n for n in reg.list_models() if reg.MODELS[n].trainable]
+    return [n for n in registry.list_models() if registry.MODELS[n].trainable]
 
 
 def load() -> dict:

@@ -16,7 +16,7 @@ import test_bench
 import torch
 from test_bench import bench
 
-from benchmark import models, train
+from benchmark import registry, train
 from benchmark.runner import train_config
 
 tiny_dataset = test_bench.tiny_dataset  # the fixture: six 64 px scenes, every split non-empty
@@ -37,7 +37,7 @@ def write_checkpoint(path: Path, name: str = "depthnet-tiny", **changes) -> Path
     """A checkpoint of network ``name`` as 'run' writes it (weights, model name, displacement),
     with ``changes`` to its entries."""
     payload = {
-        "model": models.build_model(name).state_dict(),
+        "model": registry.build_model(name).state_dict(),
         "model_name": name,
         "nominal_displacement": 0.3,
         "shift": 3,
@@ -96,7 +96,7 @@ def test_eval_of_an_unusable_checkpoint_is_one_line(tiny_dataset, tmp_path, cont
     if isinstance(content, bytes):
         ckpt.write_bytes(content)
     elif content == "state_dict":
-        torch.save(models.build_model("depthnet-tiny").state_dict(), ckpt)
+        torch.save(registry.build_model("depthnet-tiny").state_dict(), ckpt)
     elif content == "tensor":
         torch.save(torch.zeros(3), ckpt)
     else:  # depthnet-tiny weights labelled as the full-width DepthNet

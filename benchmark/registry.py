@@ -1,0 +1,153 @@
+"""Registered methods: a name → what it predicts, how to build its network, how to train it.
+
+Methods (``MODELS``): DepthNet (depth directly), FlowNetS with a depth head, FlowNetS for optical
+flow followed by depth from flow and the known translation (benchmark.flow), the same geometry fed
+with ground-truth flow (``oracle-flow``) and a constant depth (``constant``); the last two have no
+network. ``-tiny`` variants (1/8 width) exist for tests and smoke runs. Each network's training
+hyper-parameters are a :class:`Recipe`; ``benchmark.config.TrainConfig`` takes its defaults from
+:data:`DEPTH_RECIPE`, and a run of a method starts from that method's recipe.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+
+from torch import nn
+
+from .models import DepthNet, FlowNetS
+
+
+@dataclass(frozen=True)
+class Recipe:
+    """Training hyper-parameters; the defaults are the thesis recipe at 64/128 px (REFERENCE §5).
+
+    ``milestones`` are fractions of the epoch count at which the learning rate is multiplied by
+    ``gamma`` (epochs 19, 30, 44, 53 of 55); ``loss_weights`` weigh the outputs finest (1/4)
+    to coarsest (1/64); the loss is multiplied by ``loss_scale``. ``momentum`` is SGD's momentum
+    or Adam's beta1; ``dampening`` is SGD's, ``beta2`` Adam's.
+    """
+
+    epochs: int = 55
+    batch_size: int = 256
+    lr: float = 1e-2
+    optimizer: str = "sgd"  # "sgd" (DepthNet recipe) or "adam" (public FlowNetS flow recipe)
+    momentum: float = 0.9
+    dampening: float = 0.9
+    beta2: float = 0.999
+    weight_decay: float = 4e-4
+    milestones: tuple[float, ...] = (19 / 55, 30 / 55, 44 / 55, 53 / 55)
+    gamma: float = 0.3
+    loss_weights: tuple[float, ...] = (0.32, 0.08, 0.02, 0.01, 0.005)
+    loss_scale: float = 1.0
+
+
+#: DepthNet's recipe (SGD, lr 0.01, momentum and dampening 0.9, weight decay 4e-4, batch 256,
+#: 55 epochs); depth networks are all trained with it (thesis Table 3.5).
+DEPTH_RECIPE = Recipe()
+
+#: The public FlowNetS flow recipe: Adam (lr 1e-4, betas 0.9/0.999, weight decay 4e-4), loss in
+#: flow / 20; batch, epochs and lr steps as DepthNet. DepthNet's SGD at lr 0.01 did not learn flow
+#: here (64 px, 2 epochs: predictions uncorrelated with the truth, EPE 10.7 px against 3.0 px for
+#: zero flow).
+FLOW_RECIPE = replace(DEPTH_RECIPE, optimizer="adam", lr=1e-4, loss_scale=1.0 / 20.0)
+
+#: what a method outputs: a depth network, a flow network (depth by geometry), or no network
+OUTPUTS = ("depth", "flow", "oracle-flow", "constant")
+
+TINY_WIDTH = 0.125  # channel multiplier of the -tiny variants
+
+
+@dataclass(frozen=True)
+class ModelSpec:
+    """A registered method.
+
+    ``build()`` returns a freshly initialised network, or is None for methods without one
+    (``oracle-flow``, ``constant``: nothing to train). ``output`` says what the network predicts
+    and how depth is obtained: "depth" (metres, multi-scale list as DepthNet), "flow" (pixels,
+    multi-scale list; depth from flow and the known translation), "oracle-flow" (ground-truth
+    flow through the same geometry), "constant" (the training set's median depth everywhere).
+    ``recipe``: its training hyper-parameters (None without a network).
+    """
+
+    name: str
+    description: str
+    build: Callable[[], nn.Module] | None
+    output: str = "depth"
+    recipe: Recipe | None = DEPTH_RECIPE
+
+    @property
+    def trainable(self) -> bool:
+        return self.build is not None
+
+
+def _specs() -> list[ModelSpec]:
+    tiny = "at 1/8 width, for tests and smoke runs"
+    return [
+        ModelSpec(
+            "depthnet",
+            "DepthNet (FlowNetS at half width, BN, 1+ELU depth output), ~10.3 M parameters",
+            lambda: DepthNet(width=1.0),
+        ),
+        ModelSpec("depthnet-tiny", f"DepthNet {tiny}", lambda: DepthNet(width=TINY_WIDTH)),
+        ModelSpec(
+            "flownets-depth",
+            "FlowNetS (BN) with a 1-channel 1+ELU depth output, trained like DepthNet",
+            lambda: FlowNetS("depth", batch_norm=True),
+        ),
+        ModelSpec(
+            "flownets-depth-tiny",
+            f"flownets-depth {tiny}",
+            lambda: FlowNetS("depth", width=TINY_WIDTH, batch_norm=True),
+        ),
+        ModelSpec(
+            "flownets-flow",
+            "FlowNetS (BN) for optical flow; depth from flow and the known translation",
+            lambda: FlowNetS("flow", batch_norm=True),
+            "flow",
+            FLOW_RECIPE,
+        ),
+        ModelSpec(
+            "flownets-flow-tiny",
+            f"flownets-flow {tiny}",
+            lambda: FlowNetS("flow", width=TINY_WIDTH, batch_norm=True),
+            "flow",
+            FLOW_RECIPE,
+        ),
+        ModelSpec(
+            "oracle-flow",
+            "ground-truth flow -> depth by the FOE geometry (checks geometry vs metadata)",
+            None,
+            "oracle-flow",
+            None,
+        ),
+        ModelSpec(
+            "constant",
+            "the training set's median depth at every pixel (the floor to beat)",
+            None,
+            "constant",
+            None,
+        ),
+    ]
+
+
+MODELS: dict[str, ModelSpec] = {spec.name: spec for spec in _specs()}
+
+
+def list_models() -> list[str]:
+    """Registered model names, sorted."""
+    return sorted(MODELS)
+
+
+def build_model(name: str) -> nn.Module:
+    """A freshly initialised network by registry name; ValueError for an unknown name or a
+    method without a network (oracle-flow, constant)."""
+    try:
+        spec = MODELS[name]
+    except KeyError:
+        raise ValueError(
+            f"unknown model {name!r}; registered models: {', '.join(list_models())}"
+        ) from None
+    if spec.build is None:
+        raise ValueError(f"{name!r} has no network (nothing to build or train)")
+    return spec.build()
