@@ -14,7 +14,10 @@ from typing import TYPE_CHECKING
 import click
 
 from . import registry
+from . import speed as speed_table
+from .config import EVAL_BATCH_SIZE, default
 from .models import count_parameters
+from .registry import DEPTH_RECIPE
 
 if TYPE_CHECKING:
     import torch
@@ -83,7 +86,7 @@ DATA_OPTION = click.option(
     help="Dataset folder made by stillbox-gen.",
 )
 DEVICE_OPTION = click.option(
-    "--device", default="auto", show_default=True, help="auto | cpu | cuda | cuda:N."
+    "--device", default=default("device"), show_default=True, help="auto | cpu | cuda | cuda:N."
 )
 PREDICTIONS_OPTION = click.option(
     "--save-predictions",
@@ -132,23 +135,29 @@ def list_cmd() -> None:
 @click.option(
     "--epochs",
     type=int,
-    help="Epochs (one sample per training frame each).  [default: model's, 55]",
+    help=f"Epochs (one sample per training frame each).  [default: model's, {DEPTH_RECIPE.epochs}]",
 )
 @click.option("--max-steps", type=int, help="Stop after this many optimiser steps (smoke runs).")
-@click.option("--batch-size", type=int, help="Samples per optimiser step.  [default: model's, 256]")
-@click.option("--lr", type=float, help="Initial SGD learning rate.  [default: model's, 0.01]")
+@click.option(
+    "--batch-size",
+    type=int,
+    help=f"Samples per optimiser step.  [default: model's, {DEPTH_RECIPE.batch_size}]",
+)
+@click.option(
+    "--lr", type=float, help=f"Initial SGD learning rate.  [default: model's, {DEPTH_RECIPE.lr:g}]"
+)
 @DEVICE_OPTION
 @click.option(
     "--threads",
     type=int,
-    default=0,
+    default=default("threads"),
     show_default=True,
     help="Torch CPU threads (0 = torch default).",
 )
 @click.option(
     "--seed",
     type=int,
-    default=0,
+    default=default("seed"),
     show_default=True,
     help="Seed of initialisation and pair sampling.",
 )
@@ -166,12 +175,16 @@ def list_cmd() -> None:
 @click.option(
     "--ckpt-every",
     type=int,
-    default=200,
+    default=default("ckpt_every"),
     show_default=True,
     help="Steps between mid-epoch checkpoints.",
 )
 @click.option(
-    "--log-every", type=int, default=10, show_default=True, help="Steps between steps.csv rows."
+    "--log-every",
+    type=int,
+    default=default("log_every"),
+    show_default=True,
+    help="Steps between steps.csv rows.",
 )
 @PREDICTIONS_OPTION
 @click.option("--quiet", is_flag=True, help="No progress bars.")
@@ -218,15 +231,15 @@ def _run_one(model: str, data: Path, out: Path, o: dict) -> dict | None:
     from .runner import run_method
 
     overrides = {k: o.get(k) for k in ("epochs", "max_steps", "batch_size", "lr")}
-    overrides.update(
+    overrides.update(  # options 'compare' lacks are None: TrainConfig's defaults
         device=o["device"],
-        threads=o.get("threads", 0),
-        seed=o.get("seed", 0),
+        threads=o["threads"],
+        seed=o["seed"],
         pretrained=str(o["pretrained"]) if o.get("pretrained") else None,
-        resume=o.get("resume", False),
-        ckpt_every=o.get("ckpt_every", 200),
-        log_every=o.get("log_every", 10),
-        save_predictions=o.get("save_predictions", False),
+        resume=o.get("resume"),
+        ckpt_every=o.get("ckpt_every"),
+        log_every=o.get("log_every"),
+        save_predictions=o.get("save_predictions"),
         progress=not o["quiet"],
     )
     try:
@@ -258,7 +271,7 @@ def _run_one(model: str, data: Path, out: Path, o: dict) -> dict | None:
 @click.option(
     "--batch-size",
     type=int,
-    default=64,
+    default=EVAL_BATCH_SIZE,
     show_default=True,
     help="Pairs per forward pass (does not change results).",
 )
@@ -347,8 +360,12 @@ def report(runs: tuple[Path, ...], out: Path) -> None:
 @click.option("--batch-size", type=int, help="Samples per optimiser step.  [default: model's]")
 @click.option("--lr", type=float, help="Initial learning rate.  [default: model's]")
 @DEVICE_OPTION
-@click.option("--threads", type=int, default=0, show_default=True, help="Torch CPU threads.")
-@click.option("--seed", type=int, default=0, show_default=True, help="Seed of every training.")
+@click.option(
+    "--threads", type=int, default=default("threads"), show_default=True, help="Torch CPU threads."
+)
+@click.option(
+    "--seed", type=int, default=default("seed"), show_default=True, help="Seed of every training."
+)
 @click.option("--quiet", is_flag=True, help="No progress bars.")
 def compare(data: Path, names: str, out: Path | None, **o) -> None:
     """Run every method of --models on --data (reusing finished runs in --out), then write one
@@ -392,27 +409,41 @@ def _int_list(option: str, value: str) -> tuple[int, ...]:
 @click.option(
     "--models",
     "names",
-    default="depthnet,flownets-depth,flownets-flow",
+    default=",".join(speed_table.DEFAULT_MODELS),
     show_default=True,
     help="Comma-separated registered networks.",
 )
 @click.option(
     "--resolutions",
-    default="64,128,256,512",
+    default=",".join(map(str, speed_table.DEFAULT_MAC_SIZES)),
     show_default=True,
     help="Square input sizes (px) for the GMAC columns.",
 )
 @click.option(
     "--time-res",
     type=int,
-    default=64,
+    default=speed_table.DEFAULT_TIME_SIZE,
     show_default=True,
     help="Square input size (px) of the latency/throughput measurements.",
 )
-@click.option("--warmup", type=int, default=3, show_default=True, help="Untimed passes first.")
-@click.option("--repeats", type=int, default=20, show_default=True, help="Timed passes (median).")
+@click.option(
+    "--warmup",
+    type=int,
+    default=speed_table.DEFAULT_WARMUP,
+    show_default=True,
+    help="Untimed passes first.",
+)
+@click.option(
+    "--repeats",
+    type=int,
+    default=speed_table.DEFAULT_REPEATS,
+    show_default=True,
+    help="Timed passes (median).",
+)
 @DEVICE_OPTION
-@click.option("--threads", type=int, default=0, show_default=True, help="Torch CPU threads.")
+@click.option(
+    "--threads", type=int, default=default("threads"), show_default=True, help="Torch CPU threads."
+)
 @click.option(
     "--out",
     type=click.Path(path_type=Path),
@@ -433,8 +464,6 @@ def speed(
     """Parameters, GMACs, batch-1 latency and batch-8 throughput of each network (Table 3.6)."""
     import torch
 
-    from . import speed as sp
-
     chosen = _models_option(names)
     no_net = [n for n in chosen if not registry.MODELS[n].trainable]
     if no_net:
@@ -448,14 +477,14 @@ def speed(
     dev = _device(device)
     if threads > 0:
         torch.set_num_threads(threads)
-    rows = sp.measure(chosen, dev, sizes, time_res, warmup=warmup, repeats=repeats)
-    path = out / sp.csv_name(dev)
-    sp.write_csv(rows, path)
+    rows = speed_table.measure(chosen, dev, sizes, time_res, warmup=warmup, repeats=repeats)
+    path = out / speed_table.csv_name(dev)
+    speed_table.write_csv(rows, path)
     click.echo(
         f"device {dev}, {torch.get_num_threads()} threads, torch {torch.__version__}; "
         f"timing at {time_res} px, median of {repeats} after {warmup} warm-up passes"
     )
-    click.echo(sp.markdown(rows))
+    click.echo(speed_table.markdown(rows))
     click.echo(f"written to {path}")
 
 

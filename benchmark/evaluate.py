@@ -22,6 +22,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from stillbox_gen.dataset import MAX_DEPTH
+
 from . import flow, geometry, metrics
 
 
@@ -159,8 +161,8 @@ def evaluate(
             if not collect:
                 continue
             K, t = batch["K"][b].numpy().astype(np.float64), batch["translation"][b].numpy()
-            p = pred[b].clamp(0.1, metrics.MAX_DEPTH).numpy()
-            g = np.clip(gt[b].numpy(), 0, metrics.MAX_DEPTH)
+            p = pred[b].clamp(metrics.MIN_DEPTH, MAX_DEPTH).numpy()
+            g = np.clip(gt[b].numpy(), 0, MAX_DEPTH)
             foe_dist = geometry.distance_to_foe(K, t.astype(np.float64), h, w)
             pick = np.random.default_rng(len(rows)).choice(h * w, min(per_pair, h * w), False)
             for name, arr in (

@@ -32,8 +32,9 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-MIN_DEPTH = 0.1  # metres: depth from flow is clamped to [MIN_DEPTH, MAX_DEPTH] (thesis 3.6.2)
-MAX_DEPTH = 100.0
+from stillbox_gen.dataset import MAX_DEPTH
+
+from .metrics import MIN_DEPTH  # depth from flow is clamped to [MIN_DEPTH, MAX_DEPTH] metres
 
 
 def _batched(x: torch.Tensor, ndim: int) -> tuple[torch.Tensor, bool]:

@@ -19,7 +19,9 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from .metrics import MAX_DEPTH, MIN_DEPTH
+from stillbox_gen.dataset import MAX_DEPTH
+
+from .metrics import MIN_DEPTH
 
 MIN_BIN_COUNT = 10  # bins with fewer pixels are not drawn
 QUARTILE_NOTE = "median, shaded 25–75 %"

@@ -15,7 +15,7 @@ from dataclasses import dataclass, replace
 
 from torch import nn
 
-from .models import DepthNet, FlowNetS
+from .models import FLOW_DIV, DepthNet, FlowNetS
 
 
 @dataclass(frozen=True)
@@ -50,7 +50,7 @@ DEPTH_RECIPE = Recipe()
 #: flow / 20; batch, epochs and lr steps as DepthNet. DepthNet's SGD at lr 0.01 did not learn flow
 #: here (64 px, 2 epochs: predictions uncorrelated with the truth, EPE 10.7 px against 3.0 px for
 #: zero flow).
-FLOW_RECIPE = replace(DEPTH_RECIPE, optimizer="adam", lr=1e-4, loss_scale=1.0 / 20.0)
+FLOW_RECIPE = replace(DEPTH_RECIPE, optimizer="adam", lr=1e-4, loss_scale=1.0 / FLOW_DIV)
 
 #: what a method outputs: a depth network, a flow network (depth by geometry), or no network
 OUTPUTS = ("depth", "flow", "oracle-flow", "constant")

@@ -13,6 +13,8 @@ import numpy as np
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
+from stillbox_gen.dataset import MAX_DEPTH, NOMINAL_SHIFT  # noqa: E402
+
 from . import metrics, plots, registry  # noqa: E402
 from .evaluate import EvalResult  # noqa: E402
 
@@ -36,22 +38,23 @@ THESIS_64 = {
     "flownets-flow": {"mae": 6.462, "mre": 0.203, "mle": 0.172},  # FlowNetS -> depth
 }
 DEPTH_ERROR_FORMULA = (
-    "original DepthNet 'depth error': mean |θ̃_1/4 − area_downsample(min(θ, 100))| at 1/4 "
-    "resolution, per image, then averaged like the other metrics (methods without a 1/4 depth "
-    "output: their full-resolution depth area-downsampled by 4)"
+    "original DepthNet 'depth error': mean |θ̃_1/4 − area_downsample(min(θ, "
+    f"{MAX_DEPTH:g}))| at 1/4 resolution, per image, then averaged like the other metrics "
+    "(methods without a 1/4 depth output: their full-resolution depth area-downsampled by 4)"
 )
 EPE_FORMULA = (
     "EPE = E‖F̃ − F‖₂ (pixels) at full resolution (the 1/4 flow upsampled bilinearly) against the "
     "exact flow of the second frame's pixels towards the first frame, over pixels whose point is "
     "in front of both cameras; per image, then averaged like the other metrics"
 )
+_CLAMP = f"[{metrics.MIN_DEPTH:g}, {MAX_DEPTH:g}]"
 SCALE_RULES = {
     "depth": "prediction × |pair translation| / nominal displacement (known displacement; never "
     "the ground-truth median)",
     "flow": "depth from the predicted flow and the pair's known translation (FOE geometry, "
-    "benchmark.flow), clamped to [0.1, 100] m; every pixel scored, the FOE's included",
+    f"benchmark.flow), clamped to {_CLAMP} m; every pixel scored, the FOE's included",
     "oracle-flow": "depth from the exact flow and the pair's known translation (FOE geometry), "
-    "clamped to [0.1, 100] m; every pixel scored",
+    f"clamped to {_CLAMP} m; every pixel scored",
     "constant": "one depth everywhere: the training split's median depth (no scale needed)",
 }
 FOE_BIN_EDGES = (0.0, 1.0, 2.0, 4.0, 8.0, 16.0, 32.0, 64.0, 128.0, np.inf)  # pixels
@@ -168,7 +171,8 @@ def write_run_report(run: Path, model: str, result: EvalResult, info: dict) -> d
         f"# {model} on {info.get('dataset')}",
         "",
         f"Split `{info.get('split')}`: {result.summary.get('images')} pairs (i, i+"
-        f"{info.get('shift', 3)}), {info.get('scenes')} scenes. {metrics.AVERAGING_RULE}",
+        f"{info.get('shift', NOMINAL_SHIFT)}), {info.get('scenes')} scenes. "
+        f"{metrics.AVERAGING_RULE}",
         "",
         markdown_table(rows),
         "",

@@ -16,12 +16,14 @@ from pathlib import Path
 
 import numpy as np
 
+from stillbox_gen.dataset import MAX_DEPTH, NOMINAL_SHIFT
+
 from . import registry
-from .data import MAX_DEPTH, FrameStore, PairDataset, Scene, load_scenes, read_depth
+from .config import EVAL_BATCH_SIZE, TrainConfig
+from .data import FrameStore, PairDataset, Scene, load_scenes, read_depth
 from .evaluate import Method, evaluate
 from .report import foe_bins, foe_table, write_run_report
 from .train import (
-    TrainConfig,
     Trainer,
     environment,
     load_checkpoint,
@@ -75,7 +77,7 @@ def score_checkpoint(
     model = registry.build_model(name)
     load_weights(model, ck, f"--ckpt {ckpt}", name)
     model.to(dev)
-    shift = ck.get("shift", 3)
+    shift = ck.get("shift", NOMINAL_SHIFT)
     split, scenes, dataset = eval_split(data, split, shift, progress)
     method = Method(registry.MODELS[name].output, model, ck["nominal_displacement"])
     t0 = time.perf_counter()
@@ -105,9 +107,9 @@ def score_baseline(
     out: Path,
     split: str = "test",
     device: str = "auto",
-    batch_size: int = 64,
+    batch_size: int = EVAL_BATCH_SIZE,
     save_predictions: bool = False,
-    shift: int = 3,
+    shift: int = NOMINAL_SHIFT,
     progress: bool = True,
 ) -> dict:
     """Score a method without a network (oracle-flow, constant); writes the run folder."""

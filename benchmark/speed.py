@@ -21,8 +21,11 @@ import torch
 
 from . import models, registry
 
-DEFAULT_MODELS = ("depthnet", "flownets-depth", "flownets-flow")
-DEFAULT_MAC_SIZES = (64, 128, 256, 512)
+DEFAULT_MODELS = ("depthnet", "flownets-depth", "flownets-flow")  # thesis Table 3.6's networks
+DEFAULT_MAC_SIZES = (64, 128, 256, 512)  # square input sizes of the GMAC columns, pixels
+DEFAULT_TIME_SIZE = 64  # square input size of the timings, pixels
+DEFAULT_WARMUP = 3  # untimed passes before timing
+DEFAULT_REPEATS = 20  # timed passes (the median is reported)
 
 
 def _sync(device: torch.device) -> None:
@@ -68,10 +71,10 @@ def measure(
     names: list[str],
     device: torch.device,
     mac_sizes: tuple[int, ...] = DEFAULT_MAC_SIZES,
-    time_size: int = 64,
+    time_size: int = DEFAULT_TIME_SIZE,
     batches: tuple[int, int] = (1, 8),
-    warmup: int = 3,
-    repeats: int = 20,
+    warmup: int = DEFAULT_WARMUP,
+    repeats: int = DEFAULT_REPEATS,
 ) -> list[dict]:
     """One row per network: ``params_m``, ``gmac_<s>`` per size, then at ``time_size`` px the
     batch-1 latency (``latency_ms_b1``, ``fps_b1``) and the batch-8 throughput

@@ -25,7 +25,7 @@ import shutil
 import signal
 import time
 import warnings
-from dataclasses import asdict, dataclass
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
@@ -34,39 +34,8 @@ import torch.nn.functional as F
 from tqdm import tqdm
 
 from . import evaluate, registry
+from .config import TrainConfig
 from .data import EpochSampler, FrameStore, PairDataset, load_scenes
-
-
-@dataclass
-class TrainConfig:
-    model: str
-    data: str
-    out: str
-    epochs: int = 55
-    max_steps: int | None = None  # stop after this many optimiser steps (smoke runs)
-    batch_size: int = 256
-    lr: float = 1e-2
-    optimizer: str = "sgd"  # "sgd" (DepthNet recipe) or "adam" (public FlowNetS flow recipe)
-    momentum: float = 0.9  # SGD momentum, or Adam's beta1
-    dampening: float = 0.9  # SGD only
-    beta2: float = 0.999  # Adam only
-    weight_decay: float = 4e-4
-    milestones: tuple[float, ...] = (19 / 55, 30 / 55, 44 / 55, 53 / 55)  # fractions of epochs
-    gamma: float = 0.3
-    loss_weights: tuple[float, ...] = (0.32, 0.08, 0.02, 0.01, 0.005)  # finest first
-    loss_scale: float = 1.0  # the loss is multiplied by this (1/20 for flow networks)
-    shift: int = 3  # nominal frame shift
-    device: str = "auto"
-    threads: int = 0  # torch intra-op threads; 0 = torch's default
-    seed: int = 0
-    pretrained: str | None = None
-    resume: bool = False
-    eval_batch_size: int = 64
-    ckpt_every: int = 200  # steps between mid-epoch 'last' checkpoints (0 = epoch ends only)
-    log_every: int = 10
-    cache: bool | None = None  # decoded frames in memory: None = when they fit
-    save_predictions: bool = False
-    progress: bool = True
 
 
 def resolve_device(name: str) -> torch.device:

@@ -17,6 +17,7 @@ import torch
 from test_bench import bench
 
 from benchmark import registry, train
+from benchmark.config import TrainConfig
 from benchmark.runner import train_config
 
 tiny_dataset = test_bench.tiny_dataset  # the fixture: six 64 px scenes, every split non-empty
@@ -189,13 +190,13 @@ def _rows(path: Path) -> list[dict]:
         return list(csv.DictReader(f))
 
 
-def _train(cfg: train.TrainConfig) -> None:
+def _train(cfg: TrainConfig) -> None:
     trainer = train.Trainer(cfg)
     trainer.setup()
     trainer.fit()
 
 
-def _config(data: Path, out: Path) -> train.TrainConfig:
+def _config(data: Path, out: Path) -> TrainConfig:
     return train_config(
         "depthnet-tiny", data, out, batch_size=4, epochs=2, log_every=1, ckpt_every=0,
         progress=False,

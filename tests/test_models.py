@@ -221,6 +221,17 @@ def test_flow_recipe_is_the_public_flownets_adam():
     assert (depth.optimizer, depth.lr, depth.dampening) == ("sgd", 0.02, 0.9)
 
 
+def test_train_config_defaults_are_the_depthnet_recipe():
+    """TrainConfig repeats no number of the registry: its recipe fields default to DepthNet's."""
+    from dataclasses import asdict
+
+    from benchmark.config import TrainConfig
+    from benchmark.registry import DEPTH_RECIPE
+
+    cfg = asdict(TrainConfig("depthnet", "d", "o"))
+    assert {k: cfg[k] for k in asdict(DEPTH_RECIPE)} == asdict(DEPTH_RECIPE)
+
+
 def test_flownets_trains_on_flow():
     """Steps of the recipe's optimizer (Adam) lower the multi-scale EPE of the tiny flow variant
     from its zero-flow start, towards a flow field with structure (a zero-mean random field

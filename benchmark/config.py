@@ -1,0 +1,68 @@
+"""The configuration of a training run, as written to its ``config.json`` (docs/RUNS.md).
+
+Hyper-parameters default to DepthNet's recipe (:data:`benchmark.registry.DEPTH_RECIPE`); a run
+of another method starts from that method's recipe (``runner.train_config``). The command line's
+defaults are read from here (:func:`default`), so every number is written once.
+"""
+
+from __future__ import annotations
+
+from dataclasses import MISSING, dataclass, fields
+
+from stillbox_gen.dataset import NOMINAL_SHIFT
+
+from .registry import DEPTH_RECIPE
+
+_R = DEPTH_RECIPE
+
+EVAL_BATCH_SIZE = 64  # pairs per forward pass when scoring (results do not depend on it)
+
+
+@dataclass
+class TrainConfig:
+    """Everything a training run depends on.
+
+    ``model``: registry name; ``data``: dataset folder; ``out``: run folder. The recipe fields
+    (``epochs`` … ``loss_scale``) are those of :class:`benchmark.registry.Recipe`. ``shift``:
+    nominal frame shift of the pairs (frames); ``threads``: torch intra-op threads (0: torch's
+    default); ``ckpt_every``: optimiser steps between mid-epoch ``last.pt`` checkpoints (0: epoch
+    ends only); ``log_every``: steps between ``steps.csv`` rows; ``cache``: decoded frames in
+    memory (None: when they fit).
+    """
+
+    model: str
+    data: str
+    out: str
+    epochs: int = _R.epochs
+    max_steps: int | None = None  # stop after this many optimiser steps (smoke runs)
+    batch_size: int = _R.batch_size
+    lr: float = _R.lr
+    optimizer: str = _R.optimizer
+    momentum: float = _R.momentum
+    dampening: float = _R.dampening
+    beta2: float = _R.beta2
+    weight_decay: float = _R.weight_decay
+    milestones: tuple[float, ...] = _R.milestones
+    gamma: float = _R.gamma
+    loss_weights: tuple[float, ...] = _R.loss_weights
+    loss_scale: float = _R.loss_scale
+    shift: int = NOMINAL_SHIFT
+    device: str = "auto"
+    threads: int = 0
+    seed: int = 0
+    pretrained: str | None = None
+    resume: bool = False
+    eval_batch_size: int = EVAL_BATCH_SIZE
+    ckpt_every: int = 200
+    log_every: int = 10
+    cache: bool | None = None
+    save_predictions: bool = False
+    progress: bool = True
+
+
+def default(name: str):
+    """The default of TrainConfig field ``name`` (KeyError for a field without one)."""
+    field = {f.name: f for f in fields(TrainConfig)}[name]
+    if field.default is MISSING:
+        raise KeyError(f"TrainConfig.{name} has no default")
+    return field.default
