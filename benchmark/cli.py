@@ -18,6 +18,14 @@ from . import speed as speed_table
 from .config import EVAL_BATCH_SIZE, default
 from .models import count_parameters
 from .registry import DEPTH_RECIPE
+from .runfolder import (
+    COMPARISON,
+    SUMMARY_JSON,
+    SUMMARY_MD,
+    checkpoint_path,
+    comparison_paths,
+    has_summary,
+)
 
 if TYPE_CHECKING:
     import torch
@@ -33,13 +41,6 @@ def _dataset_dir(data: Path) -> Path:
             f"--data: '{data}' is not a finished stillbox-gen dataset (no manifest.parquet)"
         )
     return data
-
-
-def score_checkpoint(*args, **kwargs) -> dict:
-    """benchmark.runner.score_checkpoint (kept here for callers of the old location)."""
-    from .runner import score_checkpoint as score
-
-    return score(*args, **kwargs)
 
 
 def _device(name: str) -> torch.device:
@@ -199,7 +200,7 @@ def run(model: str, data: Path, out: Path | None, **o) -> None:
         raise UserError(f"MODEL: unknown '{model}' (registered: {known})")
     data = _dataset_dir(data)
     trainable = registry.MODELS[model].trainable
-    if o["resume"] and (out is None or not (out / "checkpoints" / "last.pt").is_file()):
+    if o["resume"] and (out is None or not checkpoint_path(out, "last").is_file()):
         raise UserError(
             "--resume: give the --out folder of an earlier run (with checkpoints/last.pt)"
         )
@@ -207,7 +208,7 @@ def run(model: str, data: Path, out: Path | None, **o) -> None:
         out = Path("runs") / f"{model}-{data.resolve().name}-{time.strftime('%Y%m%d-%H%M%S')}"
     if out.exists() and not out.is_dir():
         raise UserError(f"--out: '{out}' is a file")
-    if not o["resume"] and (out / "checkpoints" / "last.pt").exists():
+    if not o["resume"] and checkpoint_path(out, "last").exists():
         raise UserError(f"--out: '{out}' already holds a run; add --resume or choose another --out")
     _training_options(o)
     if o["pretrained"] is not None and not o["pretrained"].is_file():
@@ -222,7 +223,7 @@ def run(model: str, data: Path, out: Path | None, **o) -> None:
     click.echo(
         f"{model}: MAE {m['mae']:.3f} m, MRE {m['mre']:.3f}, MLE {m['mle']:.3f}, "
         f"depth error {m['depth_error']:.3f} m{epe} on {summary['split']} "
-        f"({m['images']} pairs); report in {out / 'summary.md'}"
+        f"({m['images']} pairs); report in {out / SUMMARY_MD}"
     )
 
 
@@ -296,6 +297,8 @@ def eval_cmd(
     out = out or ckpt.resolve().parent.parent / f"eval-{data.resolve().name}-{split}"
     if out.exists() and not out.is_dir():
         raise UserError(f"--out: '{out}' is a file")
+    from .runner import score_checkpoint
+
     try:  # checks the checkpoint and the data before anything is written to --out
         s = score_checkpoint(ckpt, data, split, out, device, batch_size, save_predictions)
     except ValueError as e:
@@ -303,23 +306,8 @@ def eval_cmd(
     m = s["metrics"]
     click.echo(
         f"{s['model']}: MAE {m['mae']:.3f} m, MRE {m['mre']:.3f}, MLE {m['mle']:.3f} on "
-        f"{s['split']} ({m['images']} pairs); report in {out / 'summary.md'}"
+        f"{s['split']} ({m['images']} pairs); report in {out / SUMMARY_MD}"
     )
-
-
-def _write_comparison(runs: list[Path], out: Path) -> str:
-    """Write OUT.md, OUT.csv and OUT-error_vs_foe_distance.png; return the markdown table."""
-    from .report import compare_figure, compare_runs
-
-    md, csv_text = compare_runs(runs)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    figure = out.with_name(f"{out.name}-error_vs_foe_distance.png")
-    text = md
-    if compare_figure(runs, figure):
-        text += f"\n\nError vs distance to the focus of expansion, every method: `{figure.name}`"
-    out.with_name(f"{out.name}.md").write_text(text + "\n")
-    out.with_name(f"{out.name}.csv").write_text(csv_text)
-    return md
 
 
 @cli.command()
@@ -334,10 +322,12 @@ def _write_comparison(runs: list[Path], out: Path) -> str:
 def report(runs: tuple[Path, ...], out: Path) -> None:
     """One comparison table (markdown + CSV) of several runs' summary.json, and one figure of
     error vs distance to the focus of expansion with every run on it."""
-    missing = [str(r) for r in runs if not (r / "summary.json").is_file()]
+    from .report import write_comparison
+
+    missing = [str(r) for r in runs if not has_summary(r)]
     if missing:
-        raise UserError(f"RUNS: no summary.json in {', '.join(missing)}")
-    click.echo(_write_comparison(list(runs), out))
+        raise UserError(f"RUNS: no {SUMMARY_JSON} in {', '.join(missing)}")
+    click.echo(write_comparison(list(runs), out))
 
 
 @cli.command()
@@ -380,10 +370,10 @@ def compare(data: Path, names: str, out: Path | None, **o) -> None:
     runs = []
     for name in chosen:
         run_dir = out / name
-        if (run_dir / "summary.json").is_file():
+        if has_summary(run_dir):
             click.echo(f"{name}: reusing {run_dir}")
         else:
-            if (run_dir / "checkpoints" / "last.pt").exists():
+            if checkpoint_path(run_dir, "last").exists():
                 raise UserError(
                     f"--out: '{run_dir}' holds an unfinished run; finish it with "
                     f"'stillbox-bench run {name} --resume --out {run_dir}' or remove it"
@@ -391,8 +381,10 @@ def compare(data: Path, names: str, out: Path | None, **o) -> None:
             click.echo(f"{name}: running into {run_dir}")
             _run_one(name, data, run_dir, o)
         runs.append(run_dir)
-    click.echo(_write_comparison(runs, out / "comparison"))
-    click.echo(f"comparison in {out / 'comparison.md'}")
+    from .report import write_comparison
+
+    click.echo(write_comparison(runs, out / COMPARISON))
+    click.echo(f"comparison in {comparison_paths(out / COMPARISON)['md']}")
 
 
 def _int_list(option: str, value: str) -> tuple[int, ...]:

@@ -24,7 +24,7 @@ import torch.nn.functional as F
 
 from stillbox_gen.dataset import MAX_DEPTH
 
-from . import flow, geometry, metrics
+from . import flow, geometry, metrics, runfolder
 
 
 @dataclass
@@ -154,10 +154,7 @@ def evaluate(
                 }
             )
             if predictions_dir is not None:
-                np.save(
-                    predictions_dir / f"{scene:06d}_{i1:02d}_{i2:02d}.npy",
-                    pred[b].numpy().astype(np.float32),
-                )
+                runfolder.save_prediction(predictions_dir, scene, i1, i2, pred[b].numpy())
             if not collect:
                 continue
             K, t = batch["K"][b].numpy().astype(np.float64), batch["translation"][b].numpy()

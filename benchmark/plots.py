@@ -1,8 +1,9 @@
 """Benchmark figures: binned error curves (thesis Figs. 3.11, 3.14, 6.1) and a sample grid.
 
-Each function writes one PNG (written to a temporary name in the same folder, then renamed, so a
-reader never sees a half-written file). Figures are built with matplotlib's object API on the
-Agg canvas, never through pyplot, so no global figure state is created or left open.
+Each ``<name>_figure`` function builds a figure (its axes hold the plotted data, which tests
+read back) and ``<name>`` writes it as one PNG (runfolder.atomic_write_binary: a reader never sees
+a half-written file). Figures are built with matplotlib's object API on the Agg canvas, never
+through pyplot, so no global figure state is created or left open.
 
 Binned curves: the x values are cut into ``bins`` equal-width bins; each bin with at least
 :data:`MIN_BIN_COUNT` pixels shows the median of y (line) and the 25–75 % quartile band (shade),
@@ -12,7 +13,6 @@ computed with ``np.percentile``. Depths are in metres, distances in pixels.
 from __future__ import annotations
 
 import os
-from pathlib import Path
 
 import matplotlib
 import numpy as np
@@ -21,23 +21,20 @@ from matplotlib.figure import Figure
 
 from stillbox_gen.dataset import MAX_DEPTH
 
+from . import runfolder
 from .metrics import MIN_DEPTH
+from .models import FLOW_DIV
 
 MIN_BIN_COUNT = 10  # bins with fewer pixels are not drawn
 QUARTILE_NOTE = "median, shaded 25–75 %"
 
 
-def _save(fig: Figure, path: str | os.PathLike) -> None:
-    """Render ``fig`` to PNG at ``path`` atomically (temp name + rename), then release it."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+def _save(fig: Figure, path: str | os.PathLike, dpi: int = 100) -> None:
+    """Render ``fig`` to PNG at ``path`` atomically (folders created), then release it."""
     try:
         FigureCanvasAgg(fig)
-        fig.savefig(tmp, format="png", dpi=100)
-        os.replace(tmp, path)
+        runfolder.atomic_write_binary(path, lambda f: fig.savefig(f, format="png", dpi=dpi))
     finally:
-        tmp.unlink(missing_ok=True)
         fig.clear()
 
 
@@ -89,21 +86,24 @@ def _flat(a: np.ndarray) -> np.ndarray:
     return np.asarray(a, dtype=np.float64).reshape(-1)
 
 
-def error_vs_depth(
+def error_vs_depth(gt: np.ndarray, abs_err: np.ndarray, path: str | os.PathLike, **kw) -> None:
+    """:func:`error_vs_depth_figure` written to the PNG ``path``."""
+    _save(error_vs_depth_figure(gt, abs_err, **kw), path)
+
+
+def error_vs_depth_figure(
     gt: np.ndarray,
     abs_err: np.ndarray,
-    path: str | os.PathLike,
     bins: int = 20,
     max_depth: float = MAX_DEPTH,
     label: str | None = None,
-) -> None:
+) -> Figure:
     """Absolute error vs ground-truth depth (thesis Fig. 3.11).
 
     Args:
         gt: ground-truth depth per pixel, metres (any shape, flattened). Pixels that are not
             finite or ≤ 0 are ignored; depths above ``max_depth`` are clipped to it.
         abs_err: ``|pred − gt|`` per pixel, metres, same size as ``gt``.
-        path: output PNG.
         bins: number of equal-width depth bins over ``[0, max_depth]``.
         max_depth: metres.
         label: legend entry for the curve (no legend when None).
@@ -125,21 +125,25 @@ def error_vs_depth(
     if label is not None and ax.get_legend_handles_labels()[0]:
         ax.legend()
     fig.tight_layout()
-    _save(fig, path)
+    return fig
 
 
 def error_vs_foe_distance(
-    curves: dict[str, tuple[np.ndarray, np.ndarray]],
-    path: str | os.PathLike,
-    bins: int = 20,
+    curves: dict[str, tuple[np.ndarray, np.ndarray]], path: str | os.PathLike, **kw
 ) -> None:
+    """:func:`error_vs_foe_distance_figure` written to the PNG ``path``."""
+    _save(error_vs_foe_distance_figure(curves, **kw), path)
+
+
+def error_vs_foe_distance_figure(
+    curves: dict[str, tuple[np.ndarray, np.ndarray]], bins: int = 20
+) -> Figure:
     """Absolute error vs distance to the focus of expansion, several methods (thesis Fig. 3.14).
 
     Args:
         curves: ``{method name: (distance_px, abs_err)}``, per-pixel arrays (flattened) of the
             pixel distance to the FOE and ``|pred − gt|`` in metres. Infinite distances (lateral
             motion, FOE at infinity) and non-finite errors are ignored.
-        path: output PNG.
         bins: number of log-spaced distance bins from 0.5 px to the largest finite distance
             (plus one bin [0, 0.5) px), shared by all methods; the x axis is logarithmic above
             1 px, so the few pixels near the FOE are not squeezed against the axis by the
@@ -170,16 +174,17 @@ def error_vs_foe_distance(
     ax.set_title(f"Error vs distance to FOE ({QUARTILE_NOTE})")
     ax.grid(alpha=0.3)
     fig.tight_layout()
-    _save(fig, path)
+    return fig
 
 
-def error_vs_estimate(
-    pred: np.ndarray,
-    gt: np.ndarray,
-    path: str | os.PathLike,
-    bins: int = 20,
-    max_depth: float = MAX_DEPTH,
-) -> None:
+def error_vs_estimate(pred: np.ndarray, gt: np.ndarray, path: str | os.PathLike, **kw) -> None:
+    """:func:`error_vs_estimate_figure` written to the PNG ``path``."""
+    _save(error_vs_estimate_figure(pred, gt, **kw), path)
+
+
+def error_vs_estimate_figure(
+    pred: np.ndarray, gt: np.ndarray, bins: int = 20, max_depth: float = MAX_DEPTH
+) -> Figure:
     """Log error vs estimated depth (thesis Fig. 6.1).
 
     Uses the scoring conventions of :mod:`benchmark.metrics`: predictions clamped to
@@ -189,7 +194,6 @@ def error_vs_estimate(
     Args:
         pred: predicted depth per pixel, metres (any shape, flattened).
         gt: ground-truth depth per pixel, metres, same size.
-        path: output PNG.
         bins: number of equal-width bins of the estimate over ``[0, max_depth]``.
         max_depth: metres.
     """
@@ -210,7 +214,7 @@ def error_vs_estimate(
     ax.set_title(f"Error vs estimated depth ({QUARTILE_NOTE})")
     ax.grid(alpha=0.3)
     fig.tight_layout()
-    _save(fig, path)
+    return fig
 
 
 def _mark_foe(ax, foe: tuple[float, float] | None, height: int, width: int) -> None:
@@ -225,7 +229,12 @@ def _mark_foe(ax, foe: tuple[float, float] | None, height: int, width: int) -> N
         ax.set_ylim(ylim)
 
 
-def sample_grid(samples: list[dict], path: str | os.PathLike, max_depth: float = MAX_DEPTH) -> None:
+def sample_grid(samples: list[dict], path: str | os.PathLike, **kw) -> None:
+    """:func:`sample_grid_figure` written to the PNG ``path``."""
+    _save(sample_grid_figure(samples, **kw), path)
+
+
+def sample_grid_figure(samples: list[dict], max_depth: float = MAX_DEPTH) -> Figure:
     """Qualitative grid: one row per sample.
 
     Columns: frame 1, frame 2, ground truth and prediction (shared ``magma_r`` scale over
@@ -237,7 +246,6 @@ def sample_grid(samples: list[dict], path: str | os.PathLike, max_depth: float =
         samples: dicts with ``"img1"``, ``"img2"``: ``(H, W, 3)`` uint8 RGB; ``"gt"``, ``"pred"``:
             ``(H, W)`` depth in metres; ``"foe"``: ``(x, y)`` pixels (pixel-centre convention) or
             None. The error uses the scoring conventions of :mod:`benchmark.metrics`.
-        path: output PNG.
         max_depth: metres, top of the depth colour scale.
     """
     if not samples:
@@ -275,4 +283,42 @@ def sample_grid(samples: list[dict], path: str | os.PathLike, max_depth: float =
                 a.set_title(titles[col], fontsize=10)
     fig.suptitle("Samples (cyan cross: focus of expansion)")
     fig.tight_layout()
-    _save(fig, path)
+    return fig
+
+
+#: learning-curve series per method output: (metrics.csv column, label); train loss first
+LEARNING_CURVES = {
+    "depth": (("train_loss", "train loss (multi-scale L1)"), ("val_mae", "validation MAE (m)")),
+    "flow": (
+        ("train_loss", f"train loss (multi-scale EPE on flow / {FLOW_DIV:g})"),
+        ("val_epe", "validation EPE (px)"),
+    ),
+}
+
+
+def learning_curve(rows: list[dict], output: str, path: str | os.PathLike) -> None:
+    """:func:`learning_curve_figure` written to the PNG ``path`` (6 × 3.5 in, 110 dpi)."""
+    _save(learning_curve_figure(rows, output), path, dpi=110)
+
+
+def learning_curve_figure(rows: list[dict], output: str) -> Figure:
+    """Training loss and validation score vs optimiser step, log scale.
+
+    Args:
+        rows: metrics.csv rows (``step`` and the columns of :data:`LEARNING_CURVES`; values
+            as strings or numbers).
+        output: the method's output, "depth" (loss: multi-scale L1; score: MAE in metres) or
+            "flow" (loss: multi-scale EPE on flow / 20; score: EPE in pixels, what its best
+            checkpoint is chosen by).
+    """
+    step = [float(r["step"]) for r in rows]
+    fig = Figure(figsize=(6, 3.5))
+    ax = fig.add_subplot()
+    for (column, label), style in zip(LEARNING_CURVES[output], ("o-", "s-"), strict=True):
+        ax.plot(step, [float(r[column]) for r in rows], style, label=label)
+    ax.set_xlabel("optimiser step")
+    ax.set_yscale("log")
+    ax.grid(alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    return fig

@@ -1,22 +1,19 @@
-"""Run reports: summary.json / summary.md, plots, and comparison tables across runs."""
+"""Run reports: the content of summary.json / summary.md, the figures of a run, and comparison
+tables across runs. Files are written by benchmark.runfolder (docs/RUNS.md)."""
 
 from __future__ import annotations
 
 import csv
 import io
-import json
 from pathlib import Path
 
-import matplotlib
 import numpy as np
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
+from stillbox_gen.dataset import MAX_DEPTH, NOMINAL_SHIFT
 
-from stillbox_gen.dataset import MAX_DEPTH, NOMINAL_SHIFT  # noqa: E402
-
-from . import metrics, plots, registry  # noqa: E402
-from .evaluate import EvalResult  # noqa: E402
+from . import metrics, plots, registry, runfolder
+from .evaluate import EvalResult
+from .runfolder import plot_path
 
 COLUMNS = ("mae", "mre", "mle", "sae", "sle", "p1.25", "p1.25^2", "p1.25^3", "depth_error", "epe")
 HEADERS = (
@@ -107,51 +104,35 @@ def markdown_table(rows: list[tuple[str, dict]]) -> str:
     return "\n".join(lines)
 
 
-def learning_curve(metrics_csv: Path, path: Path) -> None:
-    with open(metrics_csv, newline="") as f:
-        rows = list(csv.DictReader(f))
-    if not rows:
-        return
-    step = [float(r["step"]) for r in rows]
-    fig, ax = plt.subplots(figsize=(6, 3.5))
-    ax.plot(step, [float(r["train_loss"]) for r in rows], "o-", label="train loss (multi-scale L1)")
-    ax.plot(step, [float(r["val_mae"]) for r in rows], "s-", label="validation MAE (m)")
-    ax.set_xlabel("optimiser step")
-    ax.set_yscale("log")
-    ax.grid(alpha=0.3)
-    ax.legend()
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-
-
-def write_run_report(run: Path, model: str, result: EvalResult, info: dict) -> dict:
-    """summary.json, summary.md, per_sample.csv and plots/ for one evaluated model."""
-    plot_dir = run / "plots"
-    plot_dir.mkdir(parents=True, exist_ok=True)
-    with open(run / "per_sample.csv", "w", newline="") as f:
-        if result.per_sample:
-            w = csv.DictWriter(f, fieldnames=list(result.per_sample[0]))
-            w.writeheader()
-            w.writerows(result.per_sample)
+def write_plots(run: Path, model: str, result: EvalResult) -> None:
+    """The run's figures (runfolder.PLOTS): error vs depth, vs FOE distance, vs estimate, the
+    sample grid, and the learning curve when the run was trained (it has metrics.csv rows)."""
     px = result.pixels
     if px:
-        np.savez_compressed(run / "pixels.npz", **px)
-        plots.error_vs_depth(px["gt"], px["abs_err"], plot_dir / "error_vs_depth.png")
-        plots.error_vs_foe_distance(
-            {model: (px["foe_distance"], px["abs_err"])}, plot_dir / "error_vs_foe_distance.png"
-        )
-        plots.error_vs_estimate(px["pred"], px["gt"], plot_dir / "error_vs_estimate.png")
+        plots.error_vs_depth(px["gt"], px["abs_err"], plot_path(run, "error_vs_depth"))
+        curves = {model: (px["foe_distance"], px["abs_err"])}
+        plots.error_vs_foe_distance(curves, plot_path(run, "error_vs_foe_distance"))
+        plots.error_vs_estimate(px["pred"], px["gt"], plot_path(run, "error_vs_estimate"))
     if result.samples:
-        plots.sample_grid(result.samples, plot_dir / "samples.png")
-    if (run / "metrics.csv").exists():
-        learning_curve(run / "metrics.csv", plot_dir / "learning_curve.png")
-    output = registry.MODELS[model].output if model in registry.MODELS else "depth"
-    bins = foe_bins(px["foe_distance"], px["abs_err"]) if px else []
+        plots.sample_grid(result.samples, plot_path(run, "samples"))
+    rows = runfolder.read_rows(run, runfolder.METRICS_CSV)
+    if rows:
+        plots.learning_curve(rows, _output(model), plot_path(run, "learning_curve"))
+
+
+def _output(model: str) -> str:
+    return registry.MODELS[model].output if model in registry.MODELS else "depth"
+
+
+def summarize(model: str, result: EvalResult, info: dict) -> dict:
+    """summary.json's content: model, output, ``info`` (dataset, split, timing…), metrics, every
+    formula, the averaging and scale rules, the error by FOE distance, the thesis' numbers."""
+    output = _output(model)
+    px = result.pixels
     formulas = {**metrics.FORMULAS, "depth_error": DEPTH_ERROR_FORMULA}
     if "epe" in result.summary:
         formulas["epe"] = EPE_FORMULA
-    summary = {
+    return {
         "model": model,
         "output": output,
         **info,
@@ -159,35 +140,54 @@ def write_run_report(run: Path, model: str, result: EvalResult, info: dict) -> d
         "formulas": formulas,
         "averaging_rule": metrics.AVERAGING_RULE,
         "scale": SCALE_RULES[output],
-        "error_by_foe_distance": bins,
+        "error_by_foe_distance": foe_bins(px["foe_distance"], px["abs_err"]) if px else [],
         "thesis_reference_64px": THESIS_64.get(model.removesuffix("-tiny")),
     }
-    (run / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
-    rows = [(f"{model} (this run)", result.summary)]
-    ref = THESIS_64.get(model.removesuffix("-tiny"))
+
+
+def summary_markdown(summary: dict) -> str:
+    """summary.md: the scores beside the thesis' (thesis-style table), the scale rule and the
+    error by distance to the focus of expansion, from a :func:`summarize` dict."""
+    model, m = summary["model"], summary["metrics"]
+    rows = [(f"{model} (this run)", m)]
+    ref = summary["thesis_reference_64px"]
     if ref:
         rows.append((f"{model.removesuffix('-tiny')} 64 px, thesis", ref))
     md = [
-        f"# {model} on {info.get('dataset')}",
+        f"# {model} on {summary.get('dataset')}",
         "",
-        f"Split `{info.get('split')}`: {result.summary.get('images')} pairs (i, i+"
-        f"{info.get('shift', NOMINAL_SHIFT)}), {info.get('scenes')} scenes. "
+        f"Split `{summary.get('split')}`: {m.get('images')} pairs (i, i+"
+        f"{summary.get('shift', NOMINAL_SHIFT)}), {summary.get('scenes')} scenes. "
         f"{metrics.AVERAGING_RULE}",
         "",
         markdown_table(rows),
         "",
-        f"Depth: {SCALE_RULES[output]}.",
+        f"Depth: {summary['scale']}.",
         "",
         "Error by distance to the focus of expansion (pixel subsample of `pixels.npz`; lateral "
         "pairs, FOE at infinity, left out):",
         "",
-        foe_table(bins),
+        foe_table(summary["error_by_foe_distance"]),
         "",
         "Plots: `plots/` (error vs depth, vs distance to the focus of expansion, vs estimate, "
         "samples, learning curve). Per-pair metrics: `per_sample.csv`.",
     ]
-    (run / "summary.md").write_text("\n".join(md) + "\n")
-    return summary
+    return "\n".join(md) + "\n"
+
+
+def sensitivity_markdown(noise_px: float, noisy: dict, bins: list[dict]) -> str:
+    """The section oracle-flow's summary.md ends with: its scores with ``noise_px`` of Gaussian
+    flow noise (``noisy``: metrics) and their error by FOE distance (``bins``)."""
+    text = [
+        "",
+        f"## Sensitivity: exact flow + N(0, {noise_px:g} px) noise per component",
+        "",
+        f"MAE {noisy['mae']:.3f} m, MRE {noisy['mre']:.3f}, MLE {noisy['mle']:.3f}. Error by "
+        "distance to the FOE (the ill-conditioning near the FOE, REFERENCE §7):",
+        "",
+        foe_table(bins),
+    ]
+    return "\n".join(text) + "\n"
 
 
 def compare_figure(runs: list[Path], path: Path) -> bool:
@@ -195,11 +195,11 @@ def compare_figure(runs: list[Path], path: Path) -> bool:
     (thesis Fig. 3.14); False (nothing written) when none has."""
     curves = {}
     for run in runs:
-        if (run / "pixels.npz").is_file():
-            s = json.loads((run / "summary.json").read_text())
-            with np.load(run / "pixels.npz") as px:
-                label = s["model"] if s["model"] not in curves else f"{s['model']} ({run.name})"
-                curves[label] = (px["foe_distance"], px["abs_err"])
+        px = runfolder.read_pixels(run)
+        if px is not None:
+            model = runfolder.read_summary(run)["model"]
+            label = model if model not in curves else f"{model} ({run.name})"
+            curves[label] = (px["foe_distance"], px["abs_err"])
     if curves:
         plots.error_vs_foe_distance(curves, path)
     return bool(curves)
@@ -209,7 +209,7 @@ def compare_runs(runs: list[Path]) -> tuple[str, str]:
     """(markdown, csv) table of the summary.json of several runs."""
     rows = []
     for run in runs:
-        s = json.loads((run / "summary.json").read_text())
+        s = runfolder.read_summary(run)
         rows.append((f"{s['model']} ({run.name})", s["metrics"]))
     buf = io.StringIO()
     w = csv.writer(buf)
@@ -217,3 +217,15 @@ def compare_runs(runs: list[Path]) -> tuple[str, str]:
     for name, m in rows:
         w.writerow([name, *(m.get(c) for c in COLUMNS)])
     return markdown_table(rows), buf.getvalue()
+
+
+def write_comparison(runs: list[Path], out: Path) -> str:
+    """OUT.md, OUT.csv and OUT-error_vs_foe_distance.png of several runs; returns the table."""
+    md, csv_text = compare_runs(runs)
+    figure = runfolder.comparison_paths(out)["figure"]
+    figure.parent.mkdir(parents=True, exist_ok=True)
+    text = md
+    if compare_figure(runs, figure):
+        text += f"\n\nError vs distance to the focus of expansion, every method: `{figure.name}`"
+    runfolder.write_comparison(out, text + "\n", csv_text)
+    return md

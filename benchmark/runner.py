@@ -3,14 +3,14 @@
 Networks (``depth`` and ``flow`` outputs) are trained by train.Trainer, then their best
 checkpoint is scored; methods without a network (``oracle-flow``, ``constant``) are scored
 directly. Either way the run folder gets ``config.json``, ``environment.json``,
-``summary.json`` / ``summary.md``, ``per_sample.csv``, ``pixels.npz`` and ``plots/``.
-Errors a user can fix are raised as ValueError with a one-line message.
+``summary.json`` / ``summary.md``, ``per_sample.csv``, ``pixels.npz`` and ``plots/``, each written
+once, through benchmark.runfolder (docs/RUNS.md). Errors a user can fix are raised as ValueError
+with a one-line message.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import json
 import time
 from pathlib import Path
 
@@ -18,11 +18,10 @@ import numpy as np
 
 from stillbox_gen.dataset import MAX_DEPTH, NOMINAL_SHIFT
 
-from . import registry
-from .config import EVAL_BATCH_SIZE, TrainConfig
+from . import registry, report, runfolder
+from .config import EVAL_BATCH_SIZE, TrainConfig, default
 from .data import FrameStore, PairDataset, Scene, load_scenes, read_depth
-from .evaluate import Method, evaluate
-from .report import foe_bins, foe_table, write_run_report
+from .evaluate import EvalResult, Method, evaluate
 from .train import (
     Trainer,
     environment,
@@ -46,7 +45,7 @@ def eval_split(data: Path, split: str, shift: int, progress: bool) -> tuple[str,
 
 
 def median_depth(scenes: list[Scene], max_frames: int = MEDIAN_FRAMES) -> tuple[float, int]:
-    """Median ground-truth depth (clipped to 100 m, as training targets) over every pixel of up
+    """Median ground-truth depth (clipped to MAX_DEPTH, as training targets) over every pixel of up
     to ``max_frames`` frames spread evenly over ``scenes``; returns (metres, frames used)."""
     frames = [(s, f) for s in scenes for f in range(len(s.depth))]
     if not frames:
@@ -54,6 +53,19 @@ def median_depth(scenes: list[Scene], max_frames: int = MEDIAN_FRAMES) -> tuple[
     pick = np.unique(np.linspace(0, len(frames) - 1, min(max_frames, len(frames))).astype(int))
     values = [np.clip(read_depth(frames[i][0].depth[frames[i][1]]), 0, MAX_DEPTH) for i in pick]
     return float(np.median(np.concatenate([v.reshape(-1) for v in values]))), len(pick)
+
+
+def write_scores(
+    out: Path, name: str, result: EvalResult, info: dict, extra: dict | None = None, md: str = ""
+) -> dict:
+    """The scores of method ``name`` into ``out``: plots, then per_sample.csv, pixels.npz,
+    summary.json (``info``, the scores, then ``extra``) and summary.md (then ``md``), each
+    written once. Returns the summary."""
+    summary = {**report.summarize(name, result, info), **(extra or {})}
+    report.write_plots(out, name, result)
+    markdown = report.summary_markdown(summary) + md
+    runfolder.write_report(out, summary, markdown, result.per_sample, result.pixels)
+    return summary
 
 
 def score_checkpoint(
@@ -65,10 +77,11 @@ def score_checkpoint(
     batch_size: int,
     save_predictions: bool,
     progress: bool = True,
+    extra: dict | None = None,
 ) -> dict:
-    """Evaluate a checkpoint on a split and write summary.json/.md, per_sample.csv, plots/.
-
-    The checkpoint, device and data are checked before ``out`` is created."""
+    """Evaluate a checkpoint on a split and write summary.json/.md, per_sample.csv, plots/
+    (``extra`` is added to the summary). The checkpoint, device and data are checked before
+    ``out`` is created."""
     if batch_size < 1:
         raise ValueError(f"--batch-size: must be at least 1, got {batch_size}")
     dev = resolve_device(device)
@@ -81,9 +94,8 @@ def score_checkpoint(
     split, scenes, dataset = eval_split(data, split, shift, progress)
     method = Method(registry.MODELS[name].output, model, ck["nominal_displacement"])
     t0 = time.perf_counter()
-    result = evaluate(
-        method, dataset, dev, batch_size, predictions_dir=_predictions_dir(out, save_predictions)
-    )
+    predictions = runfolder.predictions_dir(out) if save_predictions else None
+    result = evaluate(method, dataset, dev, batch_size, predictions_dir=predictions)
     info = {
         "dataset": str(data),
         "split": split,
@@ -94,11 +106,7 @@ def score_checkpoint(
         "training_state": ck.get("state"),
         "eval_seconds": round(time.perf_counter() - t0, 2),
     }
-    return write_run_report(out, name, result, info)
-
-
-def _predictions_dir(out: Path, save: bool) -> Path | None:
-    return out / "predictions" if save else None
+    return write_scores(out, name, result, info, extra)
 
 
 def score_baseline(
@@ -106,7 +114,7 @@ def score_baseline(
     data: Path,
     out: Path,
     split: str = "test",
-    device: str = "auto",
+    device: str = default("device"),
     batch_size: int = EVAL_BATCH_SIZE,
     save_predictions: bool = False,
     shift: int = NOMINAL_SHIFT,
@@ -129,59 +137,49 @@ def score_baseline(
     split, scenes, dataset = eval_split(data, split, shift, progress)
     out.mkdir(parents=True, exist_ok=True)  # after every check: a mistake leaves nothing behind
     config = {"model": name, "data": str(data), "split": split, "shift": shift, "device": device}
-    (out / "config.json").write_text(json.dumps(config, indent=2) + "\n")
-    (out / "environment.json").write_text(json.dumps(environment(dev), indent=2) + "\n")
+    runfolder.write_config(out, config)
+    runfolder.write_environment(out, environment(dev))
     t0 = time.perf_counter()
-    result = evaluate(
-        method, dataset, dev, batch_size, predictions_dir=_predictions_dir(out, save_predictions)
-    )
+    predictions = runfolder.predictions_dir(out) if save_predictions else None
+    result = evaluate(method, dataset, dev, batch_size, predictions_dir=predictions)
     info.update(split=split, scenes=len(scenes), shift=shift)
     info["eval_seconds"] = round(time.perf_counter() - t0, 2)
-    summary = write_run_report(out, name, result, info)
+    extra, md = {}, ""
     if spec.output == "oracle-flow":
-        _oracle_sensitivity(out, summary, dataset, dev, batch_size)
-    return summary
+        extra, md = _oracle_sensitivity(dataset, dev, batch_size)
+    return write_scores(out, name, result, info, extra, md)
 
 
-def _oracle_sensitivity(out: Path, summary: dict, dataset, dev, batch_size: int) -> None:
-    """Score oracle-flow again with a little Gaussian flow noise; add the metrics and the error
-    by FOE distance to summary.json / summary.md: how the geometry degrades near the FOE."""
+def _oracle_sensitivity(dataset: PairDataset, dev, batch_size: int) -> tuple[dict, str]:
+    """Score oracle-flow again with a little Gaussian flow noise: the summary entries (metrics
+    and error by FOE distance) and the summary.md section showing how the geometry degrades
+    near the FOE."""
     noisy = evaluate(
         Method("oracle-flow", flow_noise=ORACLE_FLOW_NOISE_PX), dataset, dev, batch_size
     )
-    bins = foe_bins(noisy.pixels["foe_distance"], noisy.pixels["abs_err"])
-    summary["flow_noise_px"] = ORACLE_FLOW_NOISE_PX
-    summary["metrics_with_flow_noise"] = noisy.summary
-    summary["error_by_foe_distance_with_flow_noise"] = bins
-    (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
-    m = noisy.summary
-    text = [
-        "",
-        f"## Sensitivity: exact flow + N(0, {ORACLE_FLOW_NOISE_PX:g} px) noise per component",
-        "",
-        f"MAE {m['mae']:.3f} m, MRE {m['mre']:.3f}, MLE {m['mle']:.3f}. Error by distance to "
-        "the FOE (the ill-conditioning near the FOE, REFERENCE §7):",
-        "",
-        foe_table(bins),
-    ]
-    with open(out / "summary.md", "a") as f:
-        f.write("\n".join(text) + "\n")
+    bins = report.foe_bins(noisy.pixels["foe_distance"], noisy.pixels["abs_err"])
+    extra = {
+        "flow_noise_px": ORACLE_FLOW_NOISE_PX,
+        "metrics_with_flow_noise": noisy.summary,
+        "error_by_foe_distance_with_flow_noise": bins,
+    }
+    return extra, report.sensitivity_markdown(ORACLE_FLOW_NOISE_PX, noisy.summary, bins)
 
 
 def train_and_score(cfg: TrainConfig) -> dict | None:
     """Train ``cfg.model`` into ``cfg.out``, then score its best checkpoint on the test split
-    (val when test is empty). Returns the summary (None on non-zero DDP ranks). ``cfg.out`` is
-    created by Trainer.setup once every input has been checked."""
+    (val when test is empty). Returns the summary (None in processes other than the main one
+    under DDP). ``cfg.out`` is created by Trainer.setup once every input has been checked."""
     out = Path(cfg.out)
     trainer = Trainer(cfg)
     trainer.setup()
     t0 = time.perf_counter()
     trainer.fit()
     train_seconds = time.perf_counter() - t0
-    if not trainer.main:
+    if not trainer.is_main_process:
         return None
-    summary = score_checkpoint(
-        out / "checkpoints" / "best.pt",
+    return score_checkpoint(
+        runfolder.checkpoint_path(out, "best"),
         Path(cfg.data),
         "test",
         out,
@@ -189,14 +187,12 @@ def train_and_score(cfg: TrainConfig) -> dict | None:
         cfg.eval_batch_size,
         cfg.save_predictions,
         progress=cfg.progress,
+        extra={"training_seconds": round(train_seconds, 1)},
     )
-    summary["training_seconds"] = round(train_seconds, 1)
-    (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
-    return summary
 
 
 def train_config(model: str, data: Path, out: Path, **overrides) -> TrainConfig:
-    """The model's registry defaults, then ``overrides`` (None values ignored)."""
+    """The model's registry recipe, then ``overrides`` (None values ignored)."""
     recipe = dataclasses.asdict(registry.MODELS[model].recipe)
     cfg = TrainConfig(model=model, data=str(data), out=str(out), **recipe)
     return dataclasses.replace(cfg, **{k: v for k, v in overrides.items() if v is not None})

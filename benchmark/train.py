@@ -5,23 +5,21 @@ networks learn the exact flow of the pair (data.PairDataset ``target="flow"``) w
 multi-scale end-point error, times ``loss_scale`` (1/20: the public FlowNetS code's loss on
 flow / 20), and keep the checkpoint with the best validation EPE instead of the best MAE.
 
-Run folder written here: ``config.json``, ``environment.json``, ``steps.csv`` (loss every
+A training writes ``config.json``, ``environment.json``, ``steps.csv`` (loss every
 ``log_every`` steps), ``metrics.csv`` (one row per validation), ``tb/`` (TensorBoard) and
-``checkpoints/{last,best}.pt`` (atomic, fsynced; read back with ``weights_only=True``, so a
-checkpoint can never run code). Multi-process training works unchanged under ``torchrun`` (DDP;
-gloo on CPU, NCCL on GPUs): rank 0 logs, validates and saves.
+``checkpoints/{last,best}.pt`` into its run folder through benchmark.runfolder (docs/RUNS.md);
+checkpoints are read back with ``weights_only=True``, so a checkpoint can never run code.
+Multi-process training works unchanged under ``torchrun`` (DDP; gloo on CPU, NCCL on GPUs): the
+main process (rank 0) logs, validates and saves.
 """
 
 from __future__ import annotations
 
-import csv
-import json
 import math
 import os
 import pickle
 import platform
 import re
-import shutil
 import signal
 import time
 import warnings
@@ -33,7 +31,7 @@ import torch
 import torch.nn.functional as F
 from tqdm import tqdm
 
-from . import evaluate, registry
+from . import evaluate, registry, runfolder
 from .config import TrainConfig
 from .data import EpochSampler, FrameStore, PairDataset, load_scenes
 
@@ -101,33 +99,6 @@ def multiscale_loss(outputs: list[torch.Tensor], target: torch.Tensor, weights) 
     if target.ndim == 4:
         return multiscale_epe(outputs, target, weights)
     return multiscale_l1(outputs, target, weights)
-
-
-TMP_SUFFIX = ".tmp"  # save_checkpoint writes '.<name>.tmp' next to the checkpoint first
-
-
-def save_checkpoint(path: Path, payload: dict) -> None:
-    """Write ``payload`` atomically: a temporary file, fsynced, renamed over ``path``, then the
-    folder fsynced, so a kill or power cut leaves the old or the new checkpoint, never half."""
-    tmp = path.with_name(f".{path.name}{TMP_SUFFIX}")
-    with open(tmp, "wb") as f:
-        torch.save(payload, f)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
-    fd = os.open(path.parent, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
-def remove_stale_temps(folder: Path) -> list[Path]:
-    """Delete the temporary files of checkpoint writes cut short by a kill; return them."""
-    stale = sorted(folder.glob(f".*.pt{TMP_SUFFIX}")) if folder.is_dir() else []
-    for p in stale:
-        p.unlink(missing_ok=True)
-    return stale
 
 
 def _first_line(e: Exception) -> str:
@@ -213,26 +184,6 @@ def load_weights(model: torch.nn.Module, ck: dict, where: str, name: str) -> Non
         raise ValueError(f"{where}: weights do not load into '{name}' ({_first_line(e)})") from None
 
 
-def _append_csv(path: Path, row: dict) -> None:
-    new = not path.exists()
-    with open(path, "a", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(row))
-        if new:
-            w.writeheader()
-        w.writerow(row)
-
-
-def _truncate_csv(path: Path, last_step: int) -> None:
-    if not path.exists():
-        return
-    with open(path, newline="") as f:
-        rows = list(csv.DictReader(f))
-    path.unlink()
-    for row in rows:
-        if float(row["step"]) <= last_step:
-            _append_csv(path, row)
-
-
 RESUME_KEYS = ("optimizer", "scheduler", "state")
 #: running sums of the open stage (steps since the last validation), kept in the checkpoint so
 #: a resumed stage logs the same train_loss and samples/s as an uninterrupted one
@@ -243,7 +194,6 @@ class Trainer:
     def __init__(self, cfg: TrainConfig):
         self.cfg = cfg
         self.run = Path(cfg.out)
-        self.ckpt_dir = self.run / "checkpoints"
         self.world = int(os.environ.get("WORLD_SIZE", "1"))
         self.rank = 0
         if self.world > 1:
@@ -255,10 +205,10 @@ class Trainer:
         self.device = resolve_device(cfg.device)
         if self.device.type == "cuda" and self.world > 1:
             self.device = torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
-        self.main = self.rank == 0
+        self.is_main_process = self.rank == 0  # rank 0 logs, validates and saves
 
     def log(self, msg: str) -> None:
-        if self.main:
+        if self.is_main_process:
             tqdm.write(msg)
 
     def setup(self) -> None:
@@ -269,7 +219,7 @@ class Trainer:
         spec = registry.MODELS[cfg.model]
         if not spec.trainable:
             raise ValueError(f"{cfg.model}: has no network to train")
-        last = self.ckpt_dir / "last.pt"
+        last = runfolder.checkpoint_path(self.run, "last")
         resume = load_checkpoint(last, "--resume") if cfg.resume else None
         if resume is not None and resume["model_name"] != cfg.model:
             raise ValueError(
@@ -320,8 +270,9 @@ class Trainer:
                 f"(has {len(train_scenes)} train, {len(val_scenes)} val)"
             )
         t0 = time.perf_counter()
-        self.train_store = FrameStore(train_scenes, cfg.cache, cfg.progress and self.main)
-        self.val_store = FrameStore(val_scenes, cfg.cache, cfg.progress and self.main)
+        show = cfg.progress and self.is_main_process
+        self.train_store = FrameStore(train_scenes, cfg.cache, show)
+        self.val_store = FrameStore(val_scenes, cfg.cache, show)
         self.cache_seconds = time.perf_counter() - t0
         # depth targets are expressed for the nominal shift of the training set's displacement
         disp = np.median([s.displacement for s in train_scenes])
@@ -341,18 +292,8 @@ class Trainer:
                 f"--batch-size {cfg.batch_size}: larger than the "
                 f"{len(self.train_set)} training samples"
             )
-        if self.main:
-            self._prepare_run_folder()
-            (self.run / "config.json").write_text(json.dumps(asdict(cfg), indent=2) + "\n")
-            env = environment(self.device)
-            env["frame_cache_bytes"] = self.train_store.nbytes + self.val_store.nbytes
-            env["frame_cache_seconds"] = round(self.cache_seconds, 2)
-            (self.run / "environment.json").write_text(json.dumps(env, indent=2) + "\n")
-            from torch.utils.tensorboard import SummaryWriter
-
-            # on resume, TensorBoard drops the events logged after the checkpoint
-            purge = self.state["global_step"] if cfg.resume else None
-            self.tb = SummaryWriter(str(self.run / "tb"), purge_step=purge)
+        if self.is_main_process:
+            self._start_run_folder()
         if resume is not None:
             self.log(f"resumed from {last} at step {self.state['global_step']}")
 
@@ -368,26 +309,29 @@ class Trainer:
                 f"--resume {path}: its training state does not fit this run ({_first_line(e)})"
             ) from None
 
-    def _prepare_run_folder(self) -> None:
-        """Create the run folder. Resuming: drop log rows written after the checkpoint. Not
-        resuming (no checkpoint to continue, e.g. a run killed before its first one): start the
-        logs afresh. Either way delete checkpoint temporaries left by a kill."""
-        self.ckpt_dir.mkdir(parents=True, exist_ok=True)
-        for p in remove_stale_temps(self.ckpt_dir):
+    def _start_run_folder(self) -> None:
+        """Create the run folder (runfolder.start_logs), write config.json and environment.json,
+        open TensorBoard (on resume it drops the events logged after the checkpoint)."""
+        cfg = self.cfg
+        for p in runfolder.start_logs(self.run, cfg.resume, self.state["global_step"]):
             self.log(f"removed {p}, left by an interrupted checkpoint write")
-        if self.cfg.resume:
-            for name in ("steps.csv", "metrics.csv"):
-                _truncate_csv(self.run / name, self.state["global_step"])
-            return
-        for name in ("steps.csv", "metrics.csv", "checkpoints/best.pt"):
-            (self.run / name).unlink(missing_ok=True)
-        shutil.rmtree(self.run / "tb", ignore_errors=True)
+        runfolder.write_config(self.run, asdict(cfg))
+        env = environment(self.device)
+        env["frame_cache_bytes"] = self.train_store.nbytes + self.val_store.nbytes
+        env["frame_cache_seconds"] = round(self.cache_seconds, 2)
+        runfolder.write_environment(self.run, env)
+        from torch.utils.tensorboard import SummaryWriter
+
+        purge = self.state["global_step"] if cfg.resume else None
+        self.tb = SummaryWriter(str(runfolder.tb_dir(self.run)), purge_step=purge)
 
     def checkpoint(self, name: str) -> None:
-        if not self.main:
+        """Save ``checkpoints/<name>.pt`` (main process only): weights, optimiser, scheduler,
+        counters, model name, nominal displacement (metres), shift and config."""
+        if not self.is_main_process:
             return
-        save_checkpoint(
-            self.ckpt_dir / f"{name}.pt",
+        runfolder.save_checkpoint(
+            runfolder.checkpoint_path(self.run, name),
             {
                 "model": self.model.state_dict(),
                 "optimizer": self.opt.state_dict(),
@@ -423,7 +367,7 @@ class Trainer:
         train_loss = st["stage_loss_sum"] / steps if steps else float("nan")
         samples, wait = st["stage_samples"], st["stage_wait"]
         st.update(dict.fromkeys(STAGE_KEYS, 0))
-        if self.main:
+        if self.is_main_process:
             val = self.validate()
             row = {
                 "epoch": st["epoch"] + st["step_in_epoch"] / self.steps_per_epoch,
@@ -436,7 +380,7 @@ class Trainer:
                 "data_wait_share": wait / seconds if seconds else 0.0,
                 "seconds": seconds,
             }
-            _append_csv(self.run / "metrics.csv", row)
+            runfolder.append_row(self.run, runfolder.METRICS_CSV, row)
             for k, v in row.items():
                 self.tb.add_scalar(f"epoch/{k}", v, st["global_step"])
             epe = f", EPE {val['epe']:.3f} px" if "epe" in val else ""
@@ -445,7 +389,7 @@ class Trainer:
                 f"{val['mae']:.3f} m, MRE {val['mre']:.3f}, MLE {val['mle']:.3f}{epe}"
             )
             score = val["epe"] if self.output == "flow" else val["mae"]
-            if score < st["best"] or not (self.ckpt_dir / "best.pt").exists():
+            if score < st["best"] or not runfolder.checkpoint_path(self.run, "best").exists():
                 if score < st["best"]:  # a NaN score never becomes the best
                     st["best"] = score
                 self.checkpoint("best")
@@ -472,7 +416,7 @@ class Trainer:
             initial=st["global_step"],
             unit="step",
             dynamic_ncols=True,
-            disable=not (cfg.progress and self.main),
+            disable=not (cfg.progress and self.is_main_process),
         )
         while not stop:
             if st["stage_steps"] and (st["step_in_epoch"] == 0 or st["global_step"] >= total):
@@ -505,9 +449,10 @@ class Trainer:
                     samples_s=f"{st['stage_samples'] / st['stage_seconds']:.0f}",
                     epoch=st["epoch"],
                 )
-                if self.main and st["global_step"] % cfg.log_every == 0:
-                    _append_csv(
-                        self.run / "steps.csv",
+                if self.is_main_process and st["global_step"] % cfg.log_every == 0:
+                    runfolder.append_row(
+                        self.run,
+                        runfolder.STEPS_CSV,
                         {
                             "step": st["global_step"],
                             "epoch": st["epoch"],
@@ -528,7 +473,7 @@ class Trainer:
             if stop:
                 self.checkpoint("last")
         bar.close()
-        if self.main:
+        if self.is_main_process:
             self.tb.close()
         if self.world > 1:
             torch.distributed.destroy_process_group()

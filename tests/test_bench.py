@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 from conftest import run_cli
 
+from benchmark import runfolder
 from benchmark.data import FrameStore, PairDataset, load_scenes
 from stillbox_gen.manifest import split_of
 
@@ -57,6 +58,7 @@ def store(tiny_dataset) -> FrameStore:
     return FrameStore(load_scenes(tiny_dataset, "train"), progress=False)
 
 
+@pytest.mark.render
 def test_training_pairs_follow_the_original_sampling(store):
     """Shifts 0..6, about half reversed, depth rescaled to the nominal shift, flips applied."""
     ds = PairDataset(store, "train", shift=3, seed=0)
@@ -88,6 +90,7 @@ def test_training_pairs_follow_the_original_sampling(store):
     assert 0.3 < reversed_ / len(shifts) < 0.6
 
 
+@pytest.mark.render
 def test_pair_sampling_is_deterministic_per_seed_and_epoch(store):
     a, b = PairDataset(store, "train", seed=1), PairDataset(store, "train", seed=1)
     assert all(np.array_equal(a[i]["target"], b[i]["target"]) for i in range(len(a)))
@@ -95,6 +98,7 @@ def test_pair_sampling_is_deterministic_per_seed_and_epoch(store):
     assert any(not np.array_equal(a[i]["target"], b[i]["target"]) for i in range(len(a)))
 
 
+@pytest.mark.render
 def test_eval_pairs_are_fixed_forward_pairs(tiny_dataset):
     scenes = load_scenes(tiny_dataset, "val")
     ds = PairDataset(FrameStore(scenes, progress=False), "eval", shift=3)
@@ -104,6 +108,7 @@ def test_eval_pairs_are_fixed_forward_pairs(tiny_dataset):
     np.testing.assert_array_equal(item["target"].numpy(), ds.store.depth(0, 5))
 
 
+@pytest.mark.render
 def test_bad_file_is_named(tiny_dataset, tmp_path):
     import shutil
 
@@ -121,6 +126,7 @@ def _losses(run: Path) -> dict[int, float]:
     return {int(r["step"]): float(r["loss"]) for r in csv.DictReader(open(run / "steps.csv"))}
 
 
+@pytest.mark.render
 def test_smoke_run_writes_the_run_folder_and_resume_is_exact(tiny_dataset, tmp_path):
     """`run` a few steps: every report file; an interrupted-then-resumed run matches exactly."""
     common = [
@@ -157,6 +163,8 @@ def test_smoke_run_writes_the_run_folder_and_resume_is_exact(tiny_dataset, tmp_p
     ):
         assert (full / name).is_file(), name
     assert list((full / "tb").glob("events.out.tfevents.*"))
+    layout = {v for k, v in vars(runfolder).items() if k.isupper() and isinstance(v, str)}
+    assert {p.name for p in full.iterdir()} <= layout  # every file is one docs/RUNS.md names
     losses = _losses(full)
     assert sorted(losses) == [1, 2, 3, 4, 5, 6] and all(math.isfinite(v) for v in losses.values())
     summary = json.loads((full / "summary.json").read_text())
@@ -171,6 +179,7 @@ def test_smoke_run_writes_the_run_folder_and_resume_is_exact(tiny_dataset, tmp_p
         assert resumed[step] == losses[step], (step, resumed[step], losses[step])
 
 
+@pytest.mark.render
 def test_eval_does_not_depend_on_batch_size_and_report_merges_runs(tiny_dataset, tmp_path):
     run = tmp_path / "r"
     bench(
@@ -239,6 +248,7 @@ def test_list_shows_registered_models():
 # --------------------------------------------------------------------------- flow baselines
 
 
+@pytest.mark.render
 def test_flow_targets_follow_depth_translation_and_flips(store):
     """Training flow targets = exact flow of frame i2 towards frame i1, flipped consistently."""
     import torch
@@ -273,6 +283,7 @@ def _summary(run: Path) -> dict:
     return json.loads((run / "summary.json").read_text())
 
 
+@pytest.mark.render
 @pytest.mark.parametrize("model", ["flownets-depth-tiny", "flownets-flow-tiny"])
 def test_flownets_smoke_runs(tiny_dataset, tmp_path, model):
     out = tmp_path / model
@@ -298,6 +309,7 @@ def test_flownets_smoke_runs(tiny_dataset, tmp_path, model):
         assert "epe" not in s["metrics"] and s["thesis_reference_64px"]["mae"] == 5.72
 
 
+@pytest.mark.render
 def test_oracle_flow_returns_ground_truth_and_constant_is_the_median(tiny_dataset, tmp_path):
     """oracle-flow: the geometry and the dataset's motion metadata agree (exact depth back from
     the exact flow, every pixel scored); constant: the training split's median depth."""
@@ -322,6 +334,31 @@ def test_oracle_flow_returns_ground_truth_and_constant_is_the_median(tiny_datase
     assert s["metrics"]["mae"] > 1.0 and "median" in s["constant_rule"]
 
 
+@pytest.mark.render
+@pytest.mark.parametrize("model", ["oracle-flow", "constant"])
+def test_every_file_of_a_scored_run_is_written_once(tiny_dataset, tmp_path, monkeypatch, model):
+    """One writer of the run folder: each report file is written once, atomically, by
+    benchmark.runfolder (summary.json used to be written again to add entries)."""
+    from benchmark import runner
+
+    written = []
+
+    def spy(write):
+        return lambda path, *args, **kw: [written.append(path), write(path, *args, **kw)]
+
+    for name in ("atomic_write_text", "atomic_write_binary"):
+        monkeypatch.setattr(runfolder, name, spy(getattr(runfolder, name)))
+    out = tmp_path / "run"
+    summary = runner.run_method(model, tiny_dataset, out, progress=False)
+    names = [str(p.relative_to(out)) for p in written]
+    assert sorted(names) == sorted(set(names)), names
+    assert {"config.json", "summary.json", "summary.md", "per_sample.csv"} <= set(names)
+    assert json.loads((out / "summary.json").read_text()) == json.loads(json.dumps(summary))
+    on_disk = {str(p.relative_to(out)) for p in out.rglob("*") if p.is_file()}
+    assert on_disk == set(names)
+
+
+@pytest.mark.render
 def test_compare_makes_one_table_and_one_figure(tiny_dataset, tmp_path):
     out = tmp_path / "cmp"
     models = "depthnet-tiny,flownets-flow-tiny,oracle-flow,constant"

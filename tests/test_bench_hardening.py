@@ -6,17 +6,19 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import math
 import os
 import signal
 import subprocess
 from pathlib import Path
 
+import numpy as np
 import pytest
 import test_bench
 import torch
 from test_bench import bench
 
-from benchmark import registry, train
+from benchmark import registry, runfolder, train
 from benchmark.config import TrainConfig
 from benchmark.runner import train_config
 
@@ -62,6 +64,7 @@ class CreatesFile:
 # ------------------------------------------------------------------ checkpoints never run code
 
 
+@pytest.mark.render
 @pytest.mark.parametrize("flag", ["--ckpt", "--pretrained", "--resume"])
 def test_malicious_checkpoint_is_refused_not_executed(tiny_dataset, tmp_path, flag):
     marker = tmp_path / "executed"
@@ -92,6 +95,7 @@ def test_malicious_checkpoint_is_refused_not_executed(tiny_dataset, tmp_path, fl
     ],
     ids=["junk", "empty", "state_dict", "tensor", "mismatch"],
 )
+@pytest.mark.render
 def test_eval_of_an_unusable_checkpoint_is_one_line(tiny_dataset, tmp_path, content, words):
     ckpt = tmp_path / "c.pt"
     if isinstance(content, bytes):
@@ -108,6 +112,7 @@ def test_eval_of_an_unusable_checkpoint_is_one_line(tiny_dataset, tmp_path, cont
     assert not out.exists()
 
 
+@pytest.mark.render
 def test_pretrained_from_another_architecture_is_one_line(tiny_dataset, tmp_path):
     ckpt = write_checkpoint(tmp_path / "flownets.pt", "flownets-depth-tiny")
     out = tmp_path / "out"
@@ -136,6 +141,7 @@ BAD_FLAGS = [
 ]
 
 
+@pytest.mark.render
 @pytest.mark.parametrize(("args", "words"), BAD_FLAGS, ids=[" ".join(a) for a, _ in BAD_FLAGS])
 def test_bad_flag_is_one_line_and_leaves_no_out_folder(tiny_dataset, tmp_path, args, words):
     ckpt = write_checkpoint(tmp_path / "c.pt")
@@ -161,12 +167,47 @@ def test_checkpoint_write_is_fsynced_before_the_rename(tmp_path, monkeypatch):
         fsync(fd)
 
     monkeypatch.setattr(os, "fsync", spy)
-    train.save_checkpoint(path, {"x": torch.ones(2)})
+    runfolder.save_checkpoint(path, {"x": torch.ones(2)})
     assert seen == [(False, False), (True, True)]  # the file before the rename, then the folder
     assert torch.load(path, weights_only=True)["x"].tolist() == [1.0, 1.0]
     assert [p.name for p in tmp_path.iterdir()] == ["last.pt"]
 
 
+def test_start_logs_cuts_a_resumed_run_back_and_a_new_one_afresh(tmp_path):
+    run = tmp_path / "run"
+    run.mkdir()
+    for step in (1, 2, 3):
+        runfolder.append_row(run, runfolder.STEPS_CSV, {"step": step, "loss": 10.0 / step})
+    stale = run / "checkpoints" / ".last.pt.tmp"
+    stale.parent.mkdir(parents=True)
+    stale.write_bytes(b"half")
+    assert runfolder.start_logs(run, resume=True, last_step=2) == [stale]
+    rows = runfolder.read_rows(run, runfolder.STEPS_CSV)
+    assert [(r["step"], r["loss"]) for r in rows] == [("1", "10.0"), ("2", "5.0")]
+    best = runfolder.checkpoint_path(run, "best")
+    best.write_bytes(b"x")
+    (run / "tb").mkdir()
+    assert runfolder.start_logs(run, resume=False, last_step=0) == []
+    assert not (run / "steps.csv").exists() and not best.exists() and not (run / "tb").exists()
+
+
+def test_report_files_round_trip(tmp_path):
+    """summary.json keeps NaN (a metric without value) and key order; per_sample.csv its rows."""
+    summary = {"model": "m", "metrics": {"mae": float("nan"), "images": 0}, "z": [1, 2]}
+    rows = [{"scene": 0, "mae": 1.5}, {"scene": 1, "mae": 2.5}]
+    pixels = {"gt": np.arange(3, dtype=np.float32)}
+    runfolder.write_report(tmp_path, summary, "# m\n", rows, pixels)
+    back = runfolder.read_summary(tmp_path)
+    assert list(back) == ["model", "metrics", "z"] and math.isnan(back["metrics"]["mae"])
+    assert (tmp_path / "per_sample.csv").read_text() == "scene,mae\n0,1.5\n1,2.5\n"
+    assert runfolder.read_pixels(tmp_path)["gt"].tolist() == [0.0, 1.0, 2.0]
+    assert (tmp_path / "summary.md").read_text() == "# m\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == [
+        "per_sample.csv", "pixels.npz", "summary.json", "summary.md"
+    ]  # fmt: skip
+
+
+@pytest.mark.render
 def test_stale_checkpoint_temporary_is_removed_on_start(tiny_dataset, tmp_path):
     out = tmp_path / "run"
     stale = [out / "checkpoints" / ".last.pt.tmp", out / "checkpoints" / ".best.pt.tmp"]
@@ -210,6 +251,7 @@ def uninterrupted(tiny_dataset, tmp_path_factory) -> Path:
     return out
 
 
+@pytest.mark.render
 def test_own_checkpoints_load_with_weights_only(uninterrupted):
     """Trainer checkpoints (weights, optimiser and scheduler state, config) hold only what the
     safe unpickler accepts."""
@@ -219,6 +261,7 @@ def test_own_checkpoints_load_with_weights_only(uninterrupted):
         assert ck["optimizer"]["state"] and ck["scheduler"]["milestones"]
 
 
+@pytest.mark.render
 @pytest.mark.parametrize("stop_at", [3, 7], ids=["mid-epoch", "last-step-of-epoch"])
 def test_resumed_epoch_logs_the_uninterrupted_train_loss(
     tiny_dataset,
@@ -255,6 +298,7 @@ def test_resumed_epoch_logs_the_uninterrupted_train_loss(
     assert [int(r["step"]) for r in steps] == list(range(1, 15))
 
 
+@pytest.mark.render
 def test_rerun_after_a_kill_before_the_first_checkpoint_starts_logs_afresh(
     tiny_dataset,
     tmp_path,

@@ -1,0 +1,264 @@
+"""The run folder of ``stillbox-bench``: its layout and every write into it (docs/RUNS.md).
+
+Layout of a run folder::
+
+    config.json          the resolved TrainConfig (networks) or the scoring options (no network)
+    environment.json     versions, device, threads (and the frame cache of a training)
+    steps.csv            training loss every ``log_every`` optimiser steps
+    metrics.csv          one row per validation (epoch ends and the last step)
+    tb/                  TensorBoard events
+    checkpoints/         last.pt (training state) and best.pt (best validation score)
+    summary.json         scores, formulas, averaging and scale rules, error by FOE distance
+    summary.md           the same as a thesis-style table
+    per_sample.csv       metrics per scored pair
+    pixels.npz           a pixel subsample of the scored pairs (for the figures)
+    plots/               PNG figures (:data:`PLOTS`)
+    predictions/         depth maps of every scored pair (``--save-predictions``)
+
+A comparison (``compare --out DIR``, ``report --out OUT``) writes ``OUT.md``, ``OUT.csv`` and
+``OUT-error_vs_foe_distance.png`` (``compare``: OUT = DIR/comparison, beside one run folder per
+method).
+
+Writes: JSON, Markdown and CSV reports by :func:`stillbox_gen.formats.atomic_write_text` (a
+temporary name, fsynced, renamed); checkpoints, figures and ``pixels.npz`` by
+:func:`atomic_write_binary`; ``steps.csv`` and ``metrics.csv`` grow a row at a time and are cut
+back to the checkpoint's step on resume (:func:`start_logs`). Only this module writes into a run
+folder (evaluate's per-pair predictions go through :func:`save_prediction`).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import os
+import shutil
+from collections.abc import Callable
+from pathlib import Path
+from typing import BinaryIO
+
+import numpy as np
+import torch
+
+from stillbox_gen.formats import atomic_write_text
+
+CONFIG_JSON = "config.json"
+ENVIRONMENT_JSON = "environment.json"
+STEPS_CSV = "steps.csv"
+METRICS_CSV = "metrics.csv"
+TB_DIR = "tb"
+CHECKPOINTS_DIR = "checkpoints"
+SUMMARY_JSON = "summary.json"
+SUMMARY_MD = "summary.md"
+PER_SAMPLE_CSV = "per_sample.csv"
+PIXELS_NPZ = "pixels.npz"
+PLOTS_DIR = "plots"
+PREDICTIONS_DIR = "predictions"
+#: figures of a run, ``plots/<name>.png``
+PLOTS = ("error_vs_depth", "error_vs_foe_distance", "error_vs_estimate", "samples")
+PLOTS += ("learning_curve",)
+COMPARISON = "comparison"  # compare --out DIR writes DIR/comparison.{md,csv} and the figure
+TMP_SUFFIX = ".tmp"  # atomic_write_binary writes '.<name>.tmp' next to the file first
+
+
+# ---------------------------------------------------------------- paths
+
+
+def checkpoint_path(run: Path, name: str) -> Path:
+    """``checkpoints/<name>.pt`` (name: "last" or "best")."""
+    return Path(run) / CHECKPOINTS_DIR / f"{name}.pt"
+
+
+def plot_path(run: Path, name: str) -> Path:
+    """``plots/<name>.png`` for a name of :data:`PLOTS`."""
+    if name not in PLOTS:
+        raise ValueError(f"unknown plot {name!r} (one of {', '.join(PLOTS)})")
+    return Path(run) / PLOTS_DIR / f"{name}.png"
+
+
+def predictions_dir(run: Path) -> Path:
+    return Path(run) / PREDICTIONS_DIR
+
+
+def tb_dir(run: Path) -> Path:
+    return Path(run) / TB_DIR
+
+
+def comparison_paths(out: Path) -> dict[str, Path]:
+    """The files of a comparison named ``out``: ``md``, ``csv`` and ``figure``."""
+    out = Path(out)
+    return {
+        "md": out.with_name(f"{out.name}.md"),
+        "csv": out.with_name(f"{out.name}.csv"),
+        "figure": out.with_name(f"{out.name}-error_vs_foe_distance.png"),
+    }
+
+
+# ---------------------------------------------------------------- reads
+
+
+def has_summary(run: Path) -> bool:
+    """True when the run was scored (its summary.json exists)."""
+    return (Path(run) / SUMMARY_JSON).is_file()
+
+
+def read_summary(run: Path) -> dict:
+    return json.loads((Path(run) / SUMMARY_JSON).read_text())
+
+
+def read_pixels(run: Path) -> dict[str, np.ndarray] | None:
+    """The arrays of pixels.npz, or None when the run has none."""
+    path = Path(run) / PIXELS_NPZ
+    if not path.is_file():
+        return None
+    with np.load(path) as px:
+        return {k: px[k] for k in px.files}
+
+
+def read_rows(run: Path, name: str) -> list[dict]:
+    """Rows of steps.csv or metrics.csv as dicts of strings ([] when the file is missing)."""
+    path = Path(run) / name
+    if not path.exists():
+        return []
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+# ---------------------------------------------------------------- atomic writes
+
+
+def atomic_write_binary(
+    path: Path, write: Callable[[BinaryIO], None], sync_folder: bool = False
+) -> None:
+    """``write(f)`` into a temporary file beside ``path``, fsync it, rename it over ``path``
+    (then fsync the folder when ``sync_folder``): a kill or power cut leaves the old or the new
+    file, never half of one. The binary counterpart of ``formats.atomic_write_text``."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}{TMP_SUFFIX}")
+    try:
+        with open(tmp, "wb") as f:
+            write(f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    if sync_folder:
+        fd = os.open(path.parent, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+
+
+def _write_json(path: Path, obj) -> None:
+    """Indented JSON; NaN and infinities are written as NaN / Infinity (Python's reading)."""
+    atomic_write_text(path, json.dumps(obj, indent=2) + "\n")
+
+
+def _csv_text(rows: list[dict]) -> str:
+    """CSV with a header from the first row's keys (excel dialect, CRLF line ends)."""
+    buf = io.StringIO(newline="")
+    if rows:
+        w = csv.DictWriter(buf, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    return buf.getvalue()
+
+
+# ---------------------------------------------------------------- configuration
+
+
+def write_config(run: Path, config: dict) -> None:
+    _write_json(Path(run) / CONFIG_JSON, config)
+
+
+def write_environment(run: Path, env: dict) -> None:
+    _write_json(Path(run) / ENVIRONMENT_JSON, env)
+
+
+# ---------------------------------------------------------------- training logs and checkpoints
+
+
+def save_checkpoint(path: Path, payload: dict) -> None:
+    """``torch.save(payload)`` atomically, the folder fsynced after the rename."""
+    atomic_write_binary(path, lambda f: torch.save(payload, f), sync_folder=True)
+
+
+def remove_stale_temps(folder: Path) -> list[Path]:
+    """Delete the temporary files of checkpoint writes cut short by a kill; return them."""
+    folder = Path(folder)
+    stale = sorted(folder.glob(f".*.pt{TMP_SUFFIX}")) if folder.is_dir() else []
+    for p in stale:
+        p.unlink(missing_ok=True)
+    return stale
+
+
+def start_logs(run: Path, resume: bool, last_step: int) -> list[Path]:
+    """Make the folder ready for training; return the checkpoint temporaries it removed.
+
+    Resuming: drop log rows written after the checkpoint's ``last_step``. Not resuming (no
+    checkpoint to continue, e.g. a run killed before its first one): start steps.csv,
+    metrics.csv, tb/ and best.pt afresh. Either way delete checkpoint temporaries left by a kill.
+    """
+    run = Path(run)
+    (run / CHECKPOINTS_DIR).mkdir(parents=True, exist_ok=True)
+    stale = remove_stale_temps(run / CHECKPOINTS_DIR)
+    if resume:
+        for name in (STEPS_CSV, METRICS_CSV):
+            rows = read_rows(run, name)
+            (run / name).unlink(missing_ok=True)
+            for row in rows:
+                if float(row["step"]) <= last_step:
+                    append_row(run, name, row)
+        return stale
+    for path in (run / STEPS_CSV, run / METRICS_CSV, checkpoint_path(run, "best")):
+        path.unlink(missing_ok=True)
+    shutil.rmtree(tb_dir(run), ignore_errors=True)
+    return stale
+
+
+def append_row(run: Path, name: str, row: dict) -> None:
+    """Append ``row`` to steps.csv or metrics.csv (header first when the file is new)."""
+    path = Path(run) / name
+    new = not path.exists()
+    with open(path, "a", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(row))
+        if new:
+            w.writeheader()
+        w.writerow(row)
+
+
+# ---------------------------------------------------------------- scores
+
+
+def save_prediction(folder: Path, scene: int, i1: int, i2: int, depth: np.ndarray) -> None:
+    """``predictions/<scene:06d>_<i1:02d>_<i2:02d>.npy``: float32 depth (H, W) in metres of the
+    pair (i1, i2) of a scene, at full resolution."""
+    np.save(Path(folder) / f"{scene:06d}_{i1:02d}_{i2:02d}.npy", depth.astype(np.float32))
+
+
+def write_report(
+    run: Path,
+    summary: dict,
+    markdown: str,
+    per_sample: list[dict],
+    pixels: dict[str, np.ndarray],
+) -> None:
+    """per_sample.csv, pixels.npz (when there are pixels), summary.json and summary.md."""
+    run = Path(run)
+    run.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(run / PER_SAMPLE_CSV, _csv_text(per_sample))
+    if pixels:
+        atomic_write_binary(run / PIXELS_NPZ, lambda f: np.savez_compressed(f, **pixels))
+    _write_json(run / SUMMARY_JSON, summary)
+    atomic_write_text(run / SUMMARY_MD, markdown)
+
+
+def write_comparison(out: Path, markdown: str, csv_text: str) -> None:
+    """``OUT.md`` and ``OUT.csv`` of a comparison (:func:`comparison_paths`)."""
+    paths = comparison_paths(out)
+    paths["md"].parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(paths["md"], markdown)
+    atomic_write_text(paths["csv"], csv_text)
