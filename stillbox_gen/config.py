@@ -108,15 +108,11 @@ class LightConfig:
 
 
 SHADINGS = ("direct", "path")
-# --quality: render-section values (measured with `stillbox-gen bench`, see README).
-# OpenImageDenoise quality modes; "auto" = "fast" below 192x192 pixels (where per-frame costs
-# dominate), "balanced" from there (about +1 dB at 256 px for about 20 % more time).
+# OpenImageDenoise quality modes; "auto" = "fast" below DENOISE_BALANCED_FROM_PX squared pixels
+# (where per-frame costs dominate), "balanced" from there (about +1 dB at 256 px for about 20 %
+# more time).
 DENOISE_QUALITIES = ("auto", "fast", "balanced", "high")
-QUALITY = {
-    "fast": {"shading": "direct", "samples": 1, "denoise": False},
-    "default": {"shading": "direct", "samples": 4, "denoise": False},
-    "high": {"shading": "direct", "samples": 16, "denoise": False},
-}
+DENOISE_BALANCED_FROM_PX = 192
 
 
 @dataclass(frozen=True)
@@ -138,11 +134,24 @@ class RenderConfig:
     legacy: bool = False  # also write .jpg + .npy for the original DepthNet loaders
 
 
+# --quality: render-section values (measured with `stillbox-gen bench`, see README); "default"
+# is RenderConfig's own.
+QUALITY = {
+    "fast": {"shading": "direct", "samples": 1, "denoise": False},
+    "default": {
+        "shading": RenderConfig.shading,
+        "samples": RenderConfig.samples,
+        "denoise": RenderConfig.denoise,
+    },
+    "high": {"shading": "direct", "samples": 16, "denoise": False},
+}
+
+
 def denoise_quality(name: str, width: int, height: int) -> str:
     """The OpenImageDenoise mode used for ``render.denoise_quality`` at a frame size."""
     if name != "auto":
         return name
-    return "fast" if width * height < 192 * 192 else "balanced"
+    return "fast" if width * height < DENOISE_BALANCED_FROM_PX**2 else "balanced"
 
 
 @dataclass(frozen=True)

@@ -3,6 +3,8 @@
 import dataclasses
 import json
 import math
+import tomllib
+from importlib import resources
 
 import cv2
 import numpy as np
@@ -379,6 +381,23 @@ def test_texture_folder_lists_real_images(tmp_path):
     assert cv2.imwrite(str(tmp_path / "wood.png"), np.full((4, 4, 3), 128, np.uint8))
     (tmp_path / "notes.txt").write_text("hello")
     assert config.list_texture_files(str(tmp_path)) == ("wood.png",)
+
+
+@pytest.mark.parametrize("name", config.available_presets())
+def test_presets_set_only_what_differs_from_the_dataclasses(name):
+    """The dataclasses are the one source of defaults: a bundled preset that repeated one would
+    silently split from the others when the default changes."""
+    data = tomllib.loads((resources.files("scene_presets") / f"{name}.toml").read_text())
+    data.pop("description", None)
+    for section, values in data.items():
+        defaults = config.SECTIONS[section]()
+        for key, value in values.items():
+            value = tuple(value) if isinstance(value, list) else value
+            assert value != getattr(defaults, key), f"{name}.toml repeats {section}.{key}"
+
+
+def test_stillbox_preset_is_the_dataclass_defaults():
+    assert config.load_preset("stillbox") == config.DatasetConfig()
 
 
 def test_fingerprint_tracks_parameters(cfg):
