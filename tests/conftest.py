@@ -1,10 +1,15 @@
-"""Shared fixtures: tiny real datasets rendered once per test session through the CLI."""
+"""Shared fixtures: tiny real datasets rendered once per test session through the CLI.
+
+Markers: a test that renders with Blender carries ``render`` (``pytest -m "not render"`` is the
+fast suite); tests using a fixture in RENDER_FIXTURES get it here, at collection.
+"""
 
 from __future__ import annotations
 
 import os
 import subprocess
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -14,9 +19,30 @@ os.environ.setdefault("OPENCV_IO_ENABLE_OPENEXR", "1")
 
 CLI = [sys.executable, "-m", "stillbox_gen.cli"]
 
+# Fixtures that render a dataset with Blender (here, in test_stats.py and test_bench.py).
+RENDER_FIXTURES = frozenset({"default_dataset", "custom_dataset", "tiny_dataset"})
 
-def assert_user_error(proc: subprocess.CompletedProcess, *words: str) -> None:
-    """A user mistake: exit 2 and one stderr line ``stillbox-gen: error: ...`` naming ``words``."""
+
+@pytest.hookimpl(tryfirst=True)  # before -m deselects by marker
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Mark ``render`` every test that uses a rendering fixture, directly or through another."""
+    for item in items:
+        if RENDER_FIXTURES.intersection(getattr(item, "fixturenames", ())):
+            item.add_marker(pytest.mark.render)
+
+
+@dataclass
+class CliResult:
+    """Exit code and output of ``stillbox-gen``, run in a subprocess or in this process."""
+
+    returncode: int
+    stdout: str
+    stderr: str
+
+
+def assert_user_error(proc: CliResult | subprocess.CompletedProcess, *words: str) -> None:
+    """A user mistake: exit 2 and one stderr line ``stillbox-gen: error: ...`` naming ``words``
+    (so no traceback and no other output on stderr)."""
     lines = proc.stderr.strip().splitlines()
     assert proc.returncode == 2, proc.stderr
     assert len(lines) == 1 and lines[0].startswith("stillbox-gen: error: "), proc.stderr
@@ -25,10 +51,33 @@ def assert_user_error(proc: subprocess.CompletedProcess, *words: str) -> None:
 
 
 def run_cli(*args: str, check: bool = True, timeout: float = 600) -> subprocess.CompletedProcess:
+    """``stillbox-gen ARGS`` in a subprocess (end to end: entry point, exit code, real stderr)."""
     proc = subprocess.run([*CLI, *map(str, args)], capture_output=True, text=True, timeout=timeout)
     if check and proc.returncode != 0:
         raise AssertionError(f"stillbox-gen {' '.join(map(str, args))} failed:\n{proc.stderr}")
     return proc
+
+
+def invoke_cli(*args: object) -> CliResult:
+    """``stillbox-gen ARGS`` in this process, through ``cli.main`` (its error handling included)
+    under click's CliRunner isolation: milliseconds instead of a Python start-up. An exception
+    that ``main`` does not turn into an exit code propagates, failing the test with its traceback.
+    For checks that need no subprocess (exit code, Python-level output); C libraries writing to
+    file descriptor 2 are not captured, so keep those end to end (run_cli)."""
+    from click.testing import CliRunner
+
+    from stillbox_gen import cli
+
+    with CliRunner().isolation() as (out, err, _):
+        try:
+            cli.main([str(a) for a in args])
+            code = 0
+        except SystemExit as e:
+            code = 0 if e.code is None else e.code if isinstance(e.code, int) else 1
+        finally:
+            sys.stdout.flush()
+            sys.stderr.flush()
+    return CliResult(code, out.getvalue().decode(), err.getvalue().decode())
 
 
 def file_tree(root: Path) -> dict[str, bytes]:

@@ -1,13 +1,20 @@
-"""Bad input: one-line error naming the flag or file, exit code 2, nothing written."""
+"""Bad input: one-line error naming the flag or file, exit code 2, nothing written.
+
+Most cases run ``cli.main`` in this process (conftest.invoke_cli: click's CliRunner); a few run
+the command in a subprocess, end to end (conftest.run_cli).
+"""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import cv2
 import numpy as np
 import pytest
-from conftest import assert_user_error, run_cli
+from conftest import CliResult, assert_user_error, invoke_cli, run_cli
+
+from stillbox_gen import config
 
 
 @pytest.mark.parametrize(
@@ -32,29 +39,47 @@ from conftest import assert_user_error, run_cli
         (["--rotation-noise", "nan"], ["--rotation-noise: must be a finite number, got nan"]),
         (["--seed", "-1"], ["--seed: must be a non-negative integer, got -1"]),
         (["--scene-timeout", "nan"], ["--scene-timeout"]),
+        (["--ray-address", "h:1"], ["--ray-address: only with --backend ray"]),
     ],
 )
 def test_bad_flag_is_a_one_line_error_and_writes_nothing(tmp_path, args, words):
     out = tmp_path / "out"
-    proc = run_cli(*args, "--out", out, check=False)
-    assert_user_error(proc, *words)
+    assert_user_error(invoke_cli(*args, "--out", out), *words)
     assert not out.exists()
+
+
+@pytest.mark.parametrize(
+    ("args", "words"),
+    [
+        (["--res", "big"], ["--res", "big"]),
+        (["--no-such-flag"], ["--no-such-flag"]),
+        (["validate", "{tmp}/nope"], ["nope"]),
+    ],
+)
+def test_end_to_end_a_bad_command_exits_2_with_one_line_and_writes_nothing(tmp_path, args, words):
+    """The real process: exit status 2, a single stderr line, nothing on stdout, nothing written."""
+    out = tmp_path / "out"
+    argv = [a.format(tmp=tmp_path) for a in args]
+    proc = run_cli(*argv, *(["--out", out] if argv[0] != "validate" else []), check=False)
+    assert_user_error(proc, *words)
+    assert proc.stdout == ""
+    assert sorted(tmp_path.iterdir()) == []
 
 
 def test_texture_folder_without_images_is_refused(tmp_path):
     empty = tmp_path / "photos"
     empty.mkdir()
     (empty / "readme.txt").write_text("no images here")
-    proc = run_cli("--textures", empty, "--out", tmp_path / "out", check=False)
-    assert_user_error(proc, "--textures", "no readable images")
+    result = invoke_cli("--textures", empty, "--out", tmp_path / "out")
+    assert_user_error(result, "--textures", "no readable images")
     assert not (tmp_path / "out").exists()
 
 
 def test_bad_preset_file_names_file_and_key(tmp_path):
     preset = tmp_path / "mine.toml"
     preset.write_text("[camera]\nfov = 60\n")
-    proc = run_cli("--preset", preset, "--out", tmp_path / "out", check=False)
-    assert_user_error(proc, "mine.toml", "camera.fov")
+    result = invoke_cli("--preset", preset, "--out", tmp_path / "out")
+    assert_user_error(result, "mine.toml", "camera.fov")
 
 
 @pytest.mark.parametrize(
@@ -68,13 +93,13 @@ def test_bad_preset_value_names_file_and_key_and_writes_nothing(tmp_path, text, 
     preset = tmp_path / "x.toml"
     preset.write_text(text)
     out = tmp_path / "out"
-    proc = run_cli("--preset", preset, "--out", out, check=False)
-    assert_user_error(proc, f"preset {preset}: {message}")
+    assert_user_error(invoke_cli("--preset", preset, "--out", out), f"preset {preset}: {message}")
     assert not out.exists()
 
 
 def test_truncated_texture_file_is_refused(tmp_path):
-    """A JPEG whose data is cut off (valid header) is named, with no decoder noise."""
+    """A JPEG whose data is cut off (valid header) is named, with no decoder noise: end to end,
+    since OpenCV's decoders write to file descriptor 2, which only a subprocess captures."""
     photos = tmp_path / "photos"
     photos.mkdir()
     rng = np.random.default_rng(0)
@@ -89,15 +114,13 @@ def test_truncated_texture_file_is_refused(tmp_path):
 def test_output_path_that_is_a_file_is_refused_and_kept(tmp_path):
     target = tmp_path / "afile"
     target.write_text("precious")
-    proc = run_cli("--out", target, check=False)
-    assert_user_error(proc, "--out", "is a file")
+    assert_user_error(invoke_cli("--out", target), "--out", "is a file")
     assert target.read_text() == "precious"
 
 
 def test_foreign_folder_is_refused_and_kept(tmp_path):
     (tmp_path / "mine.txt").write_text("precious")
-    proc = run_cli("--out", tmp_path, check=False)
-    assert_user_error(proc, "--out", "not a stillbox-gen dataset")
+    assert_user_error(invoke_cli("--out", tmp_path), "--out", "not a stillbox-gen dataset")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["mine.txt"]
 
 
@@ -107,30 +130,81 @@ def test_dataset_with_other_parameters_is_not_mixed(tmp_path):
     out.mkdir()
     info = {"fingerprint": "0000", "preset": "stillbox", "seed": 1, "scenes": 1}
     (out / "dataset.json").write_text(json.dumps(info))
-    proc = run_cli("--out", out, "--seed", "2", check=False)
-    assert_user_error(proc, "--out", "other parameters")
+    assert_user_error(invoke_cli("--out", out, "--seed", "2"), "--out", "other parameters")
     assert json.loads((out / "dataset.json").read_text()) == info
 
 
 def test_validate_and_preview_refuse_missing_dataset(tmp_path):
-    assert_user_error(run_cli("validate", tmp_path / "nope", check=False), "nope")
-    assert_user_error(run_cli("preview", tmp_path, check=False), "manifest.parquet")
+    assert_user_error(invoke_cli("validate", tmp_path / "nope"), "nope")
+    assert_user_error(invoke_cli("preview", tmp_path), "manifest.parquet")
 
 
 def test_validate_reports_problems_by_file(tmp_path):
     (tmp_path / "dataset.json").write_text("{not json")
-    proc = run_cli("validate", tmp_path, check=False)
-    assert proc.returncode == 1
-    assert "dataset.json" in proc.stdout
+    result = invoke_cli("validate", tmp_path)
+    assert result.returncode == 1
+    assert "dataset.json" in result.stdout
 
 
 @pytest.mark.parametrize("value", ["2/2", "1", "a/b", "0/0", "-1/3"])
 def test_bad_shard_is_refused_before_any_write(tmp_path, value):
-    proc = run_cli("--shard", value, "--out", tmp_path / "x", check=False)
-    assert proc.returncode == 2 and "--shard" in proc.stderr
+    assert_user_error(invoke_cli("--shard", value, "--out", tmp_path / "x"), "--shard")
     assert not (tmp_path / "x").exists()
 
 
 def test_unknown_bench_config_is_refused():
-    proc = run_cli("bench", "--configs", "default,ultra", check=False)
-    assert proc.returncode == 2 and "--configs: unknown ultra" in proc.stderr
+    assert_user_error(invoke_cli("bench", "--configs", "default,ultra"), "--configs: unknown ultra")
+
+
+# ---------------------------------------------------------------- the in-process runner
+
+
+def test_in_process_runner_lets_an_unexpected_exception_fail_the_test(monkeypatch, tmp_path):
+    """A crash is not an exit code: it propagates with its traceback instead of passing."""
+
+    def crash(name):
+        raise TypeError("a bug")
+
+    monkeypatch.setattr(config, "load_preset", crash)
+    with pytest.raises(TypeError, match="a bug"):
+        invoke_cli("--out", tmp_path / "out")
+
+
+@pytest.mark.parametrize(
+    "result",
+    [
+        CliResult(1, "", "stillbox-gen: error: --res: bad\n"),  # wrong exit code
+        CliResult(2, "", "Traceback (most recent call last):\nstillbox-gen: error: x\n"),
+        CliResult(2, "", "stillbox-gen: error: --res: bad\nsomething else\n"),  # two lines
+        CliResult(2, "", "error: --res: bad\n"),  # not our prefix
+    ],
+)
+def test_assert_user_error_refuses_anything_but_one_line_and_exit_2(result):
+    with pytest.raises(AssertionError):
+        assert_user_error(result, "--res")
+
+
+def test_generate_help_shows_the_dataclass_defaults():
+    """Help texts are generated from the dataclasses, not typed in."""
+    from stillbox_gen.generate import RunOptions
+
+    result = invoke_cli("generate", "--help")
+    assert result.returncode == 0, result.stderr
+    text = " ".join(result.stdout.split())
+    cam, mats, render = config.CameraConfig, config.MaterialsConfig, config.RenderConfig
+    run = {f.name: f.default for f in dataclasses.fields(RunOptions)}
+    for expected in [
+        f"WxH. [default: preset, {cam.width}]",
+        f"field of view, degrees. [default: preset, {cam.fov_deg:g}]",
+        f"Frames per scene. [default: preset, {cam.frames}]",
+        f"per frame, metres. [default: preset, {cam.displacement:g}]",
+        f"texture ratio {mats.texture_ratio:g}",
+        f"patterns only). [default: preset, {mats.photos}]",
+        f"noise std, degrees. [default: preset, {cam.rotation_noise_deg:g}]",
+        f"default {render.samples},",
+        f"RGB file format. [default: {render.image_format}]",
+        f"[default: {','.join(f'{s:g}' for s in config.DatasetConfig.split)}]",
+        f"--threads INTEGER Cycles threads per worker (0 = all cores). [default: {run['threads']}]",
+        f"[default: {run['scene_timeout']}]",
+    ]:
+        assert expected in text, expected

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
-from conftest import CLI, file_tree, run_cli
+from conftest import CLI, assert_user_error, file_tree, invoke_cli, run_cli
 
 pytestmark = pytest.mark.render
 
@@ -33,12 +33,11 @@ def test_shards_in_separate_folders_merge_into_a_single_run(default_dataset, tmp
     run_cli(*ARGS, "--scenes", 4, "--shard", "0/2", "--workers", 1, "--out", a)
     run_cli(*ARGS, "--scenes", 4, "--shard", "1/2", "--workers", 1, "--out", b)
 
-    missing = run_cli("merge", merged, a, check=False)
-    assert missing.returncode == 2 and "lacks 2 of 4 scenes (1, 3)" in missing.stderr
+    assert_user_error(invoke_cli("merge", merged, a), "lacks 2 of 4 scenes (1, 3)")
     other = tmp_path / "other"
     run_cli("--res", 64, "--seed", 4, "--quiet", "--scenes", 4, "--shard", "1/2", "--out", other)
-    clash = run_cli("merge", tmp_path / "m2", a, other, check=False)
-    assert clash.returncode == 2 and f"'{other}' was made with other parameters" in clash.stderr
+    clash = invoke_cli("merge", tmp_path / "m2", a, other)
+    assert_user_error(clash, f"'{other}' was made with other parameters")
 
     proc = run_cli("merge", merged, a, b)
     assert "merged 2 scenes from 2 folders; indexed 4 scenes, 40 frames" in proc.stdout
@@ -239,11 +238,3 @@ def test_ray_actor_killed_mid_run_is_replaced_and_its_scene_retried(
     ref, got = file_tree(default_dataset), file_tree(out)
     assert all(ref[n] == got[n] for n in _scene_files(ref))
     assert run_cli("validate", out).returncode == 0
-
-
-def test_ray_backend_errors_name_the_flag(tmp_path):
-    proc = run_cli(
-        *ARGS, "--scenes", 2, "--out", tmp_path / "x", "--ray-address", "h:1", check=False
-    )
-    assert proc.returncode == 2 and "--ray-address: only with --backend ray" in proc.stderr
-    assert not (tmp_path / "x").exists()

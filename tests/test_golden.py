@@ -84,6 +84,7 @@ def golden_dataset(tmp_path_factory, photo_dir) -> Path:
     return out
 
 
+@pytest.mark.render
 def test_scene_descriptions_and_metadata_match_golden(golden_dataset, photo_dir):
     photos = str(Path(photo_dir).resolve())
     info = json.loads((golden_dataset / "dataset.json").read_text())
@@ -103,6 +104,7 @@ def test_scene_descriptions_and_metadata_match_golden(golden_dataset, photo_dir)
     assert not moved, f"{len(moved)} golden scene/metadata items moved:\n" + "\n".join(moved[:15])
 
 
+@pytest.mark.render
 def test_frames_and_depth_match_golden(golden_dataset):
     problems = []
     for k in range(3):
@@ -132,6 +134,7 @@ def test_frames_and_depth_match_golden(golden_dataset):
     assert not problems, "\n".join(problems)
 
 
+@pytest.mark.render
 def test_golden_dataset_validates(golden_dataset):
     assert run_cli("validate", golden_dataset).returncode == 0
 
@@ -154,6 +157,7 @@ def test_metrics_on_fixed_predictions_equal_golden_numbers():
     assert not moved and set(golden) == set(current), "metrics moved:\n" + "\n".join(moved)
 
 
+@pytest.mark.render
 def test_fixed_seed_depthnet_smoke_training_loss_is_finite_and_falls(tmp_path):
     """A few fixed-seed steps on a tiny 64 px golden-seed set; then eval and report files."""
     import csv

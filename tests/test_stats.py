@@ -6,7 +6,7 @@ import json
 
 import numpy as np
 import pytest
-from conftest import assert_user_error, run_cli
+from conftest import assert_user_error, invoke_cli, run_cli
 
 from stillbox_gen import stats
 from stillbox_gen.camera import intrinsics_matrix, pose_matrix, random_rotation
@@ -164,8 +164,8 @@ def test_warp_with_the_true_flow_undoes_a_lateral_move():
 
 def test_stats_of_a_folder_that_is_not_a_dataset_is_a_one_line_error(tmp_path):
     (tmp_path / "notes.txt").write_text("hello")
-    assert_user_error(run_cli("stats", tmp_path, check=False), "dataset.json")
-    assert_user_error(run_cli("stats", tmp_path / "missing", check=False), "not a folder")
+    assert_user_error(invoke_cli("stats", tmp_path), "dataset.json")
+    assert_user_error(invoke_cli("stats", tmp_path / "missing"), "not a folder")
     assert not (tmp_path / "stats.json").exists()
 
 
@@ -215,8 +215,7 @@ def test_stats_python_api_and_bad_numbers(tiny_dataset, tmp_path):
         (["--max-depth", -1], "--max-depth"),
         (["--flicker", 3], "--flicker"),
     ):
-        proc = run_cli("stats", tiny_dataset, *args, "--out", tmp_path / "x", check=False)
-        assert_user_error(proc, word)
+        assert_user_error(invoke_cli("stats", tiny_dataset, *args, "--out", tmp_path / "x"), word)
     assert not (tmp_path / "x").exists()
 
 
