@@ -13,6 +13,8 @@ from typing import TYPE_CHECKING
 
 import click
 
+from stillbox_gen.dataset import default_root
+
 from . import registry
 from . import speed as speed_table
 from .config import EVAL_BATCH_SIZE, default
@@ -35,7 +37,18 @@ class UserError(click.ClickException):
     exit_code = 2
 
 
+#: the default --data: stillbox-gen's default output at 64 px, and the command that makes it
+#: (the 3,000 scenes of the README's results)
+DEFAULT_DATA = default_root(64, 64)
+MAKE_DEFAULT_DATA = "stillbox-gen --res 64 --scenes 3000"
+
+
 def _dataset_dir(data: Path) -> Path:
+    """``data`` when it holds a finished dataset; else a UserError naming --data (and, when the
+    folder is missing, the stillbox-gen command that makes it)."""
+    if not data.exists():
+        make = MAKE_DEFAULT_DATA if data == DEFAULT_DATA else f"{MAKE_DEFAULT_DATA} --out {data}"
+        raise UserError(f"--data: no dataset at '{data}'; make one with '{make}'")
     if not (data / "manifest.parquet").is_file():
         raise UserError(
             f"--data: '{data}' is not a finished stillbox-gen dataset (no manifest.parquet)"
@@ -83,8 +96,9 @@ def _models_option(value: str) -> list[str]:
 DATA_OPTION = click.option(
     "--data",
     type=click.Path(path_type=Path),
-    required=True,
-    help="Dataset folder made by stillbox-gen.",
+    default=DEFAULT_DATA,
+    show_default=True,
+    help=f"Dataset folder made by stillbox-gen (the default is made by '{MAKE_DEFAULT_DATA}').",
 )
 DEVICE_OPTION = click.option(
     "--device", default=default("device"), show_default=True, help="auto | cpu | cuda | cuda:N."

@@ -239,6 +239,41 @@ def test_bad_input_is_a_one_line_error(args, words):
     assert all(w in lines[0] for w in words), lines[0]
 
 
+def test_run_depthnet_typed_alone_reads_the_default_dataset(tmp_path, monkeypatch):
+    """`stillbox-bench run depthnet` (in-process, from an empty folder): a one-line error naming
+    the stillbox-gen command that makes data/stillbox-64; once that dataset is there, the run
+    starts on it with the registry's recipe (the training itself is replaced by a stub)."""
+    from click.testing import CliRunner
+
+    from benchmark import cli, runner
+
+    monkeypatch.chdir(tmp_path)
+    result = CliRunner().invoke(cli.cli, ["run", "depthnet"])
+    assert result.exit_code == 2, result.output
+    (line,) = result.stderr.strip().splitlines()
+    assert "--data" in line and "data/stillbox-64" in line
+    assert "'stillbox-gen --res 64 --scenes 3000'" in line
+
+    (tmp_path / "data" / "stillbox-64").mkdir(parents=True)
+    (tmp_path / "data" / "stillbox-64" / "manifest.parquet").touch()
+    calls = []
+    metrics = {"mae": 1.0, "mre": 0.1, "mle": 0.1, "depth_error": 1.0, "images": 7}
+
+    def run_method(model, data, out, **overrides):
+        calls.append((model, data, out, overrides))
+        return {"metrics": metrics, "split": "test"}
+
+    monkeypatch.setattr(runner, "run_method", run_method)
+    result = CliRunner().invoke(cli.cli, ["run", "depthnet"])
+    assert result.exit_code == 0, result.output
+    ((model, data, out, overrides),) = calls
+    assert (model, data) == ("depthnet", Path("data/stillbox-64"))
+    assert out.parent == Path("runs") and out.name.startswith("depthnet-stillbox-64-")
+    cfg = runner.train_config(model, data, out, **overrides)
+    assert (cfg.epochs, cfg.batch_size, cfg.lr, cfg.seed) == (55, 256, 0.01, 0)
+    assert "MAE 1.000 m" in result.output
+
+
 def test_list_shows_registered_models():
     out = bench("list").stdout
     assert "depthnet " in out and "depthnet-tiny" in out
