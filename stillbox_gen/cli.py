@@ -74,9 +74,36 @@ def parse_point(value: str) -> tuple[float, float]:
     return cx, cy
 
 
+def _show(value: object) -> str:
+    """A default as the help shows it: numbers without trailing zeros, sequences comma-joined."""
+    if isinstance(value, tuple):
+        return ",".join(_show(v) for v in value)
+    return f"{value:g}" if isinstance(value, float) else str(value)
+
+
+def _preset(section: type, name: str) -> str:
+    """The help's ``[default: preset, V]``: V is the dataclass default (what a preset that does
+    not set the key gives, the stillbox preset included)."""
+    return f"[default: preset, {_show(getattr(section, name))}]"
+
+
+def _run_default(name: str) -> object:
+    """The default of a generate.RunOptions field: the CLI's default for its flag."""
+    from .generate import RunOptions
+
+    return next(f.default for f in dataclasses.fields(RunOptions) if f.name == name)
+
+
+_CAM, _MATS, _RENDER = config.CameraConfig, config.MaterialsConfig, config.RenderConfig
+_RES = f"{_CAM.width}" if _CAM.width == _CAM.height else f"{_CAM.width}x{_CAM.height}"
+DEFAULT_SCENES = 100  # --scenes
+
+
 @cli.command()
-@click.option("--res", help="Frame size in pixels: N (square) or WxH.  [default: preset, 64]")
-@click.option("--scenes", type=int, default=100, show_default=True, help="Number of scenes.")
+@click.option("--res", help=f"Frame size in pixels: N (square) or WxH.  [default: preset, {_RES}]")
+@click.option(
+    "--scenes", type=int, default=DEFAULT_SCENES, show_default=True, help="Number of scenes."
+)
 @click.option(
     "--out",
     type=click.Path(path_type=Path),
@@ -85,70 +112,79 @@ def parse_point(value: str) -> tuple[float, float]:
 @click.option(
     "--seed",
     type=int,
-    default=0,
+    default=config.DatasetConfig.seed,
     show_default=True,
     help="Dataset seed; scene k depends only on (seed, k).",
 )
-@click.option("--workers", type=int, default=2, show_default=True, help="Blender worker processes.")
+@click.option(
+    "--workers",
+    type=int,
+    default=2,  # TODO(issue 13): _run_default("workers") once RunOptions.workers is 2
+    show_default=True,
+    help="Blender worker processes.",
+)
 @click.option(
     "--threads",
     type=int,
-    default=0,
+    default=_run_default("threads"),
     show_default=True,
     help="Cycles threads per worker (0 = all cores).",
 )
 @click.option(
     "--preset",
-    default="stillbox",
+    default=config.DatasetConfig.preset,
     show_default=True,
     help="Preset name in scene_presets/ or path to a .toml file.",
 )
-@click.option("--fov", type=float, help="Horizontal field of view, degrees.  [default: preset, 90]")
+@click.option(
+    "--fov", type=float, help=f"Horizontal field of view, degrees.  {_preset(_CAM, 'fov_deg')}"
+)
 @click.option("--focal", type=float, help="Focal length in pixels (instead of --fov).")
 @click.option(
     "--principal-point",
     help="CX,CY in pixels, pixel-centre convention.  [default: ((W-1)/2, (H-1)/2)]",
 )
-@click.option("--frames", type=int, help="Frames per scene.  [default: preset, 10]")
+@click.option("--frames", type=int, help=f"Frames per scene.  {_preset(_CAM, 'frames')}")
 @click.option(
     "--displacement",
     type=float,
-    help="Camera displacement per frame, metres.  [default: preset, 0.1]",
+    help=f"Camera displacement per frame, metres.  {_preset(_CAM, 'displacement')}",
 )
 @click.option(
     "--textures",
     type=click.Path(path_type=Path),
-    help="Folder of your photos used as textures (texture ratio 0.5).  "
+    help=f"Folder of your photos used as textures (texture ratio {_show(_MATS.texture_ratio)}).  "
     "[default: the photos bundled with bpy]",
 )
 @click.option(
     "--photos",
     type=click.Choice(config.PHOTO_SOURCES),
     help="Without --textures: bundled photos, or none (procedural patterns only).  "
-    "[default: preset, bundled]",
+    + _preset(_MATS, "photos"),
 )
 @click.option(
     "--rotation-noise",
     type=float,
-    help="Per-frame orientation noise std, degrees.  [default: preset, 0]",
+    help=f"Per-frame orientation noise std, degrees.  {_preset(_CAM, 'rotation_noise_deg')}",
 )
 @click.option(
     "--rotation-speed",
     type=float,
-    help="Constant camera rotation, degrees per frame (unstabilised).  [default: preset, 0]",
+    help="Constant camera rotation, degrees per frame (unstabilised).  "
+    + _preset(_CAM, "rotation_speed_deg"),
 )
 @click.option(
     "--quality",
     type=click.Choice(list(config.QUALITY)),
-    help="Samples per pixel (anti-aliasing; the shading has no noise): fast 1, default 4, "
-    "high 16 (README has the measured costs).  "
-    "[default: preset]",
+    help="Samples per pixel (anti-aliasing; the shading has no noise): "
+    + ", ".join(f"{q} {v['samples']}" for q, v in config.QUALITY.items())
+    + " (README has the measured costs).  [default: preset]",
 )
 @click.option("--samples", type=int, help="Cycles samples per pixel (after --quality).")
 @click.option(
     "--image-format",
     type=click.Choice(config.IMAGE_FORMATS),
-    help="RGB file format.  [default: png]",
+    help=f"RGB file format.  [default: {_RENDER.image_format}]",
 )
 @click.option(
     "--legacy",
@@ -157,7 +193,8 @@ def parse_point(value: str) -> tuple[float, float]:
 )
 @click.option(
     "--split",
-    help="Shares of scenes in train,val,test (by scene, from (seed, k)).  [default: 0.8,0.1,0.1]",
+    help="Shares of scenes in train,val,test (by scene, from (seed, k)).  "
+    f"[default: {_show(config.DatasetConfig.split)}]",
 )
 @click.option(
     "--shard",
@@ -168,7 +205,7 @@ def parse_point(value: str) -> tuple[float, float]:
 @click.option(
     "--scene-timeout",
     type=float,
-    default=600.0,
+    default=_run_default("scene_timeout"),
     show_default=True,
     help="Seconds without any finished scene before the workers are replaced and their "
     "scenes retried (watchdog for hung workers).",
@@ -176,7 +213,7 @@ def parse_point(value: str) -> tuple[float, float]:
 @click.option(
     "--backend",
     type=click.Choice(["local", "ray"]),
-    default="local",
+    default=_run_default("backend"),
     show_default=True,
     help="local: Blender processes on this machine; ray: Ray actors on a Ray cluster "
     "(pip install 'stillbox-gen[ray]'), each using --threads CPUs (1 when 0).",
