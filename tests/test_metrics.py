@@ -9,10 +9,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from benchmark import metrics
 from benchmark.metrics import (
-    AVERAGING_RULE,
-    FORMULAS,
     METRICS,
     aggregate,
     image_metrics,
@@ -49,12 +46,18 @@ def hand_batch() -> tuple[torch.Tensor, torch.Tensor]:
     return pred, gt
 
 
-def test_constants_describe_every_metric():
-    assert METRICS == ("mae", "mre", "mle", "sae", "sle", "p1.25", "p1.25^2", "p1.25^3")
-    assert set(FORMULAS) == set(METRICS)
-    assert "per image" in AVERAGING_RULE and "equal weight" in AVERAGING_RULE
-    assert "[0.1, 100]" in AVERAGING_RULE
-    assert metrics.MIN_DEPTH == 0.1 and metrics.MAX_DEPTH == 100.0
+def test_precision_thresholds_are_strict_and_symmetric():
+    """P_δ counts max(θ̃/θ, θ/θ̃) < δ: a ratio of exactly 1.25 (either way) is not within 1.25
+    but within 1.25²; 1.5625 = 1.25² exactly is within 1.25³ only."""
+    gt = torch.tensor([[[2.0, 2.5, 2.0, 2.0]]])
+    pred = torch.tensor([[[2.5, 2.0, 3.125, 2.2]]])  # ratios 1.25, 1.25 (gt/pred), 1.5625, 1.1
+    m = image_metrics(pred, gt)
+    assert m["p1.25"].item() == pytest.approx(1 / 4)
+    assert m["p1.25^2"].item() == pytest.approx(3 / 4)
+    assert m["p1.25^3"].item() == pytest.approx(1.0)
+    # natural logs: |ln 1.25| twice, ln 1.5625, ln 1.1
+    mle = (2 * math.log(1.25) + math.log(1.5625) + math.log(1.1)) / 4
+    assert m["mle"].item() == pytest.approx(mle)
 
 
 def test_hand_computed_values():
