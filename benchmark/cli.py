@@ -93,6 +93,11 @@ def _models_option(value: str) -> list[str]:
     return names
 
 
+def _int_option(flag: str, value: int, text: str):
+    """An integer option with a default shown in --help."""
+    return click.option(flag, type=int, default=value, show_default=True, help=text)
+
+
 DATA_OPTION = click.option(
     "--data",
     type=click.Path(path_type=Path),
@@ -162,20 +167,8 @@ def list_cmd() -> None:
     "--lr", type=float, help=f"Initial SGD learning rate.  [default: model's, {DEPTH_RECIPE.lr:g}]"
 )
 @DEVICE_OPTION
-@click.option(
-    "--threads",
-    type=int,
-    default=default("threads"),
-    show_default=True,
-    help="Torch CPU threads (0 = torch default).",
-)
-@click.option(
-    "--seed",
-    type=int,
-    default=default("seed"),
-    show_default=True,
-    help="Seed of initialisation and pair sampling.",
-)
+@_int_option("--threads", default("threads"), "Torch CPU threads (0 = torch default).")
+@_int_option("--seed", default("seed"), "Seed of initialisation and pair sampling.")
 @click.option(
     "--pretrained",
     type=click.Path(path_type=Path),
@@ -187,20 +180,8 @@ def list_cmd() -> None:
     help="Continue the run in --out from checkpoints/last.pt, keeping its logs up to that "
     "checkpoint (an interrupted epoch's train loss is logged as if never interrupted).",
 )
-@click.option(
-    "--ckpt-every",
-    type=int,
-    default=default("ckpt_every"),
-    show_default=True,
-    help="Steps between mid-epoch checkpoints.",
-)
-@click.option(
-    "--log-every",
-    type=int,
-    default=default("log_every"),
-    show_default=True,
-    help="Steps between steps.csv rows.",
-)
+@_int_option("--ckpt-every", default("ckpt_every"), "Steps between mid-epoch checkpoints.")
+@_int_option("--log-every", default("log_every"), "Steps between steps.csv rows.")
 @PREDICTIONS_OPTION
 @click.option("--quiet", is_flag=True, help="No progress bars.")
 def run(model: str, data: Path, out: Path | None, **o) -> None:
@@ -283,13 +264,7 @@ def _run_one(model: str, data: Path, out: Path, o: dict) -> dict | None:
     type=click.Path(path_type=Path),
     help="Report folder.  [default: <ckpt folder>/../eval-<dataset>-<split>]",
 )
-@click.option(
-    "--batch-size",
-    type=int,
-    default=EVAL_BATCH_SIZE,
-    show_default=True,
-    help="Pairs per forward pass (does not change results).",
-)
+@_int_option("--batch-size", EVAL_BATCH_SIZE, "Pairs per forward pass (does not change results).")
 @DEVICE_OPTION
 @PREDICTIONS_OPTION
 def eval_cmd(
@@ -364,12 +339,8 @@ def report(runs: tuple[Path, ...], out: Path) -> None:
 @click.option("--batch-size", type=int, help="Samples per optimiser step.  [default: model's]")
 @click.option("--lr", type=float, help="Initial learning rate.  [default: model's]")
 @DEVICE_OPTION
-@click.option(
-    "--threads", type=int, default=default("threads"), show_default=True, help="Torch CPU threads."
-)
-@click.option(
-    "--seed", type=int, default=default("seed"), show_default=True, help="Seed of every training."
-)
+@_int_option("--threads", default("threads"), "Torch CPU threads.")
+@_int_option("--seed", default("seed"), "Seed of every training.")
 @click.option("--quiet", is_flag=True, help="No progress bars.")
 def compare(data: Path, names: str, out: Path | None, **o) -> None:
     """Run every method of --models on --data (reusing finished runs in --out), then write one
@@ -425,31 +396,15 @@ def _int_list(option: str, value: str) -> tuple[int, ...]:
     show_default=True,
     help="Square input sizes (px) for the GMAC columns.",
 )
-@click.option(
+@_int_option(
     "--time-res",
-    type=int,
-    default=speed_table.DEFAULT_TIME_SIZE,
-    show_default=True,
-    help="Square input size (px) of the latency/throughput measurements.",
+    speed_table.DEFAULT_TIME_SIZE,
+    "Square input size (px) of the latency/throughput measurements.",
 )
-@click.option(
-    "--warmup",
-    type=int,
-    default=speed_table.DEFAULT_WARMUP,
-    show_default=True,
-    help="Untimed passes first.",
-)
-@click.option(
-    "--repeats",
-    type=int,
-    default=speed_table.DEFAULT_REPEATS,
-    show_default=True,
-    help="Timed passes (median).",
-)
+@_int_option("--warmup", speed_table.DEFAULT_WARMUP, "Untimed passes first.")
+@_int_option("--repeats", speed_table.DEFAULT_REPEATS, "Timed passes (median).")
 @DEVICE_OPTION
-@click.option(
-    "--threads", type=int, default=default("threads"), show_default=True, help="Torch CPU threads."
-)
+@_int_option("--threads", default("threads"), "Torch CPU threads.")
 @click.option(
     "--out",
     type=click.Path(path_type=Path),
