@@ -19,16 +19,11 @@ import numpy as np
 from stillbox_gen.dataset import MAX_DEPTH, NOMINAL_SHIFT
 
 from . import registry, report, runfolder
+from .checkpoint import load_checkpoint, load_weights
 from .config import EVAL_BATCH_SIZE, TrainConfig, default
 from .data import FrameStore, PairDataset, Scene, load_scenes, read_depth
 from .evaluate import EvalResult, Method, evaluate
-from .train import (
-    Trainer,
-    environment,
-    load_checkpoint,
-    load_weights,
-    resolve_device,
-)
+from .train import Trainer, environment, resolve_device
 
 MEDIAN_FRAMES = 2000  # at most this many training frames (evenly spread) for the constant
 ORACLE_FLOW_NOISE_PX = 0.05  # oracle-flow is also scored with this much flow noise (sensitivity)

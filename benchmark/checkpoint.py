@@ -1,0 +1,102 @@
+"""Checkpoints read back: only what ``stillbox-bench`` writes, never code (docs/RUNS.md).
+
+Checkpoints are written by ``runfolder.save_checkpoint`` (``Trainer.checkpoint`` decides what
+goes in). Reading unpickles with ``torch.load(weights_only=True)``: tensors and plain data only.
+A file that is not such a checkpoint, or whose weights do not fit the network, is a ValueError of
+one line naming the flag and the file.
+"""
+
+from __future__ import annotations
+
+import pickle
+import re
+import warnings
+from pathlib import Path
+
+import torch
+
+from . import registry
+
+
+def first_line(e: Exception) -> str:
+    """The first line of an exception's message (its type's name when it has none)."""
+    text = str(e).strip()
+    return text.splitlines()[0] if text else type(e).__name__
+
+
+CHECKPOINT_KEYS = ("model", "model_name", "nominal_displacement")
+
+
+def load_checkpoint(path: str | Path, flag: str | None = None) -> dict:
+    """A checkpoint written by Trainer.checkpoint, unpickled with ``weights_only=True`` (tensors
+    and plain data only: a file that would run code is refused, never executed).
+
+    Anything else raises ValueError with one line naming ``flag`` (e.g. "--ckpt") and the file.
+    """
+    where = f"{flag} {path}" if flag else str(path)
+    try:
+        with warnings.catch_warnings():  # e.g. "Detected pickle protocol 4" for foreign pickles
+            warnings.simplefilter("ignore")
+            ck = torch.load(path, map_location="cpu", weights_only=True)
+    except FileNotFoundError:
+        raise ValueError(f"{where}: no such checkpoint") from None
+    except pickle.UnpicklingError as e:
+        found = re.search(r"GLOBAL (\S+)", str(e))
+        if found:
+            raise ValueError(
+                f"{where}: refused, it would run code or build objects other than tensors "
+                f"({found.group(1)}); only checkpoints written by stillbox-bench are loaded"
+            ) from None
+        raise ValueError(
+            f"{where}: not a readable checkpoint (corrupt or not a torch file)"
+        ) from None
+    except Exception as e:  # noqa: BLE001 - any reader failure is the file's fault
+        raise ValueError(f"{where}: not a readable checkpoint ({first_line(e)})") from None
+    if isinstance(ck, dict) and ck and all(isinstance(v, torch.Tensor) for v in ck.values()):
+        raise ValueError(
+            f"{where}: a bare state_dict, not a stillbox-bench checkpoint (a dict with "
+            f"{', '.join(map(repr, CHECKPOINT_KEYS))}, as 'run' writes)"
+        )
+    if not isinstance(ck, dict) or not all(k in ck for k in CHECKPOINT_KEYS):
+        raise ValueError(
+            f"{where}: not a stillbox-bench checkpoint (expected a dict with "
+            f"{', '.join(map(repr, CHECKPOINT_KEYS))}, as 'run' writes)"
+        )
+    name = ck["model_name"]
+    spec = registry.MODELS.get(name) if isinstance(name, str) else None
+    if spec is None or not spec.trainable:
+        raise ValueError(f"{where}: unknown model name {name!r} in the checkpoint")
+    if not isinstance(ck["model"], dict):
+        raise ValueError(f"{where}: its 'model' entry is not a state_dict")
+    return ck
+
+
+def load_weights(model: torch.nn.Module, ck: dict, where: str, name: str) -> None:
+    """``model.load_state_dict(ck["model"])`` for the network ``name``; weights that do not fit
+    raise a one-line ValueError naming ``where`` (flag and file) and the first misfit tensor."""
+    own, theirs = model.state_dict(), ck["model"]
+    shape = [
+        k
+        for k in own
+        if k in theirs
+        and not (isinstance(theirs[k], torch.Tensor) and theirs[k].shape == own[k].shape)
+    ]
+    missing = [k for k in own if k not in theirs]
+    unexpected = [k for k in theirs if k not in own]
+    if shape or missing or unexpected:
+        found = [(shape, "of another shape"), (missing, "missing"), (unexpected, "unexpected")]
+        parts = [f"{len(keys)} {what}" for keys, what in found if keys]
+        counts = ", ".join([parts[0].replace(" ", " tensors ", 1), *parts[1:]])
+        if shape:
+            k = shape[0]
+            got = tuple(theirs[k].shape) if isinstance(theirs[k], torch.Tensor) else "no tensor"
+            example = f"{k} is {got} instead of {tuple(own[k].shape)}"
+        else:
+            example = f"{(missing or unexpected)[0]} is {'missing' if missing else 'unexpected'}"
+        source = ck.get("model_name")
+        whose = "its weights" if source == name else f"weights of '{source}'"
+        raise ValueError(f"{where}: {whose} do not fit '{name}': {counts}; e.g. {example}")
+    try:
+        model.load_state_dict(theirs)
+    except (RuntimeError, TypeError, ValueError) as e:
+        raise ValueError(f"{where}: weights do not load into '{name}' ({first_line(e)})") from None
