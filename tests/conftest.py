@@ -9,6 +9,7 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -59,18 +60,24 @@ def run_cli(*args: str, check: bool = True, timeout: float = 600) -> subprocess.
 
 
 def invoke_cli(*args: object) -> CliResult:
-    """``stillbox-gen ARGS`` in this process, through ``cli.main`` (its error handling included)
-    under click's CliRunner isolation: milliseconds instead of a Python start-up. An exception
-    that ``main`` does not turn into an exit code propagates, failing the test with its traceback.
-    For checks that need no subprocess (exit code, Python-level output); C libraries writing to
-    file descriptor 2 are not captured, so keep those end to end (run_cli)."""
-    from click.testing import CliRunner
-
+    """``stillbox-gen ARGS`` in this process (see invoke_main)."""
     from stillbox_gen import cli
+
+    return invoke_main(cli.main, *args)
+
+
+def invoke_main(main: Callable[[list[str]], None], *args: object) -> CliResult:
+    """A command line's ``main(argv)`` (``stillbox_gen.cli.main``, ``benchmark.cli.main``) run in
+    this process, its error handling included, under click's CliRunner isolation: milliseconds
+    instead of a Python start-up. An exception that ``main`` does not turn into an exit code
+    propagates, failing the test with its traceback. For checks that need no subprocess (exit
+    code, Python-level output); C libraries writing to file descriptor 2 are not captured, so keep
+    those end to end (run_cli)."""
+    from click.testing import CliRunner
 
     with CliRunner().isolation() as (out, err, _):
         try:
-            cli.main([str(a) for a in args])
+            main([str(a) for a in args])
             code = 0
         except SystemExit as e:
             code = 0 if e.code is None else e.code if isinstance(e.code, int) else 1
