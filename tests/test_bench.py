@@ -1,4 +1,8 @@
-"""Benchmark on a tiny real dataset: pair sampling, smoke `run`, exact resume, eval, report."""
+"""Benchmark on a tiny real dataset: pair sampling, smoke `run`, exact resume, eval, report.
+
+``stillbox-bench`` runs in this process (conftest.invoke_main) but for two end-to-end runs in a
+subprocess (the smoke run and the speed table, which sets torch's thread count).
+"""
 
 from __future__ import annotations
 
@@ -11,9 +15,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import run_cli
+from conftest import CliResult, invoke_main, run_cli
 
-from benchmark import runfolder
+from benchmark import cli, runfolder
 from benchmark.data import FrameStore, PairDataset, load_scenes
 from stillbox_gen.manifest import split_of
 
@@ -21,7 +25,16 @@ BENCH = [sys.executable, "-m", "benchmark.cli"]
 SHARES = (0.5, 0.25, 0.25)
 
 
-def bench(*args, check: bool = True) -> subprocess.CompletedProcess:
+def bench(*args, check: bool = True) -> CliResult:
+    """``stillbox-bench ARGS`` in this process; AssertionError on a non-zero exit if ``check``."""
+    proc = invoke_main(cli.main, *args)
+    if check and proc.returncode != 0:
+        raise AssertionError(f"stillbox-bench {' '.join(map(str, args))} failed:\n{proc.stderr}")
+    return proc
+
+
+def bench_e2e(*args, check: bool = True) -> subprocess.CompletedProcess:
+    """``stillbox-bench ARGS`` end to end, in a subprocess."""
     proc = subprocess.run([*BENCH, *map(str, args)], capture_output=True, text=True, timeout=900)
     if check and proc.returncode != 0:
         raise AssertionError(f"stillbox-bench {' '.join(map(str, args))} failed:\n{proc.stderr}")
@@ -143,7 +156,7 @@ def test_smoke_run_writes_the_run_folder_and_resume_is_exact(tiny_dataset, tmp_p
         2,
     ]
     full = tmp_path / "full"
-    proc = bench(*common, "--max-steps", 6, "--out", full)
+    proc = bench_e2e(*common, "--max-steps", 6, "--out", full)
     assert "MAE" in proc.stdout
     for name in (
         "config.json",
@@ -415,7 +428,7 @@ def test_compare_makes_one_table_and_one_figure(tiny_dataset, tmp_path):
 def test_speed_table(tmp_path):
     import torch
 
-    proc = bench(
+    proc = bench_e2e(
         "speed", "--models", "depthnet-tiny,flownets-flow-tiny", "--resolutions", "64,128",
         "--time-res", 64, "--warmup", 1, "--repeats", 2, "--threads", 1, "--out", tmp_path,
     )  # fmt: skip

@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 import test_bench
 import torch
+from conftest import CliResult
 from test_bench import bench
 
 from benchmark import registry, runfolder, train
@@ -25,7 +26,7 @@ from benchmark.runner import train_config
 tiny_dataset = test_bench.tiny_dataset  # the fixture: six 64 px scenes, every split non-empty
 
 
-def assert_bench_error(proc: subprocess.CompletedProcess, *words: str) -> str:
+def assert_bench_error(proc: CliResult | subprocess.CompletedProcess, *words: str) -> str:
     """A user mistake: exit 2, one stderr line ``stillbox-bench: error: ...`` naming ``words``,
     no traceback."""
     lines = proc.stderr.strip().splitlines()

@@ -112,10 +112,11 @@ def test_registry():
         assert [round(f * r.epochs) for f in r.milestones] == [19, 30, 44, 53]
         assert r.loss_weights == (0.32, 0.08, 0.02, 0.01, 0.005)
         assert r.loss_scale == (1 / 20 if spec.output == "flow" else 1.0)
-        model = spec.build().eval()
-        channels = 2 if spec.output == "flow" else 1
-        with torch.no_grad():
-            assert model(torch.zeros(1, 6, 64, 64))[0].shape == (1, channels, 16, 16)
+        if spec.name.endswith("-tiny"):  # full widths: the fixture test builds them
+            channels = 2 if spec.output == "flow" else 1
+            with torch.no_grad():
+                out = spec.build().eval()(torch.zeros(1, 6, 64, 64))
+            assert out[0].shape == (1, channels, 16, 16)
     with pytest.raises(ValueError, match="depthnet-tiny"):
         build_model("nope")
 
