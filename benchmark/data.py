@@ -1,4 +1,4 @@
-"""Image pairs from a stillbox-gen dataset (manifest.parquet + the chunks' metadata.json).
+"""Image pairs from a stillbox-gen dataset, read through stillbox_gen.dataset.Dataset.
 
 Training pairs follow the original DepthNet sampling (REFERENCE §3): frame i1 uniform, shift =
 round(2·nominal_shift·U) in {0..6}, i2 = min(last, i1 + shift), swapped with probability 0.5; the
@@ -15,122 +15,42 @@ gives the same batches whatever the worker count, and a resumed run continues th
 
 from __future__ import annotations
 
-import json
 import os
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import pyarrow.parquet as pq
 import torch
 from tqdm import tqdm
 
 os.environ.setdefault("OPENCV_IO_ENABLE_OPENEXR", "1")
-import cv2  # noqa: E402
 
-from stillbox_gen.dataset import MAX_DEPTH, NOMINAL_SHIFT  # noqa: E402
-from stillbox_gen.formats import (  # noqa: E402
-    METADATA_JSON,
-    UnsafePathError,
-    read_depth_exr,
-    resolve_inside,
-)
+from stillbox_gen import layout  # noqa: E402
+from stillbox_gen.dataset import MAX_DEPTH, NOMINAL_SHIFT, Dataset, Scene  # noqa: E402
+from stillbox_gen.formats import DatasetError, read_depth  # noqa: E402, F401 - runner uses it
 
 from .flow import flow_from_depth  # noqa: E402
 
 STILL_TARGET = 100.0  # target for identical frames: "no motion => infinitely far", saturated
 CACHE_LIMIT_BYTES = 8 * 1024**3
 
-
-class DataError(ValueError):
-    """A dataset that cannot be used; the message names the file."""
-
-
-@dataclass
-class Scene:
-    index: int
-    split: str
-    rgb: list[Path]
-    depth: list[Path]
-    speed: np.ndarray  # m/s, camera axes of the first frame
-    time_step: float
-    K: np.ndarray
-
-    @property
-    def displacement(self) -> float:
-        """Metres per frame."""
-        return float(np.linalg.norm(self.speed) * self.time_step)
-
-    def translation(self, i1: int, i2: int) -> np.ndarray:
-        """Camera translation from frame i1 to frame i2, metres, in camera axes (stabilised)."""
-        return (i2 - i1) * self.speed * self.time_step
+#: A dataset that cannot be used; the message names the file (stillbox_gen's DatasetError).
+DataError = DatasetError
 
 
-def _inside(root: Path, relpath: str, what: str, folder: str = "") -> Path:
-    """stillbox_gen.formats.resolve_inside, raising DataError: a path read from the dataset may
-    not lead outside it (the file is then never opened)."""
-    try:
-        return resolve_inside(root, relpath, what, folder)
-    except UnsafePathError as e:
-        raise DataError(str(e)) from None
-
-
-def load_scenes(root: Path, split: str) -> list[Scene]:
-    """Scenes of one split, in index order. Raises DataError naming the faulty file, or the
-    record whose file name would lead outside ``root``."""
-    root = Path(root)
-    man_path = root / "manifest.parquet"
-    if not man_path.is_file():
-        raise DataError(f"{man_path}: missing (not a finished stillbox-gen dataset)")
-    try:
-        table = pq.read_table(man_path, columns=["scene", "chunk", "split", "frame"]).to_pylist()
-    except Exception as e:  # noqa: BLE001 - report any reader failure with the file name
-        raise DataError(f"{man_path}: unreadable ({e})") from None
-    wanted = sorted({(r["scene"], r["chunk"]) for r in table if r["split"] == split})
-    metas: dict[str, dict] = {}
-    scenes = []
-    for index, chunk in wanted:
-        if chunk not in metas:
-            meta_path = _inside(root, f"{chunk}/{METADATA_JSON}", f"{man_path}: scene {index}")
-            try:
-                metas[chunk] = json.loads(meta_path.read_text())
-            except (OSError, json.JSONDecodeError) as e:
-                raise DataError(f"{meta_path}: missing or not JSON ({e})") from None
-        rec = metas[chunk]["scenes"][index % 200]
-        if rec["index"] != index:
-            raise DataError(f"{root / chunk / 'metadata.json'}: scene {index} out of order")
-        if rec["orientation"]:
+def load_scenes(root: str | os.PathLike, split: str) -> list[Scene]:
+    """Scenes of one split, in index order (stillbox_gen.dataset.Dataset.scenes). Raises
+    DataError naming the faulty file, or the record whose file name would lead outside
+    ``root``, or a scene with camera rotations (these baselines need a stabilised dataset)."""
+    ds = Dataset(root)
+    scenes = ds.scenes(split)
+    for s in scenes:
+        if not s.stabilised:
+            meta = ds.root / layout.chunk_name(s.index) / layout.METADATA_JSON
             raise DataError(
-                f"{root / chunk / 'metadata.json'}: scene {index} has camera rotations; "
-                "these baselines need a stabilised dataset (no --rotation-noise/--rotation-speed)"
+                f"{meta}: scene {s.index} has camera rotations; these baselines need a "
+                "stabilised dataset (no --rotation-noise/--rotation-speed)"
             )
-        where = f"{root / chunk / METADATA_JSON}: scene {index}"
-        scenes.append(
-            Scene(
-                index=index,
-                split=split,
-                rgb=[_inside(root, n, where, chunk) for n in rec["rgb"]],
-                depth=[_inside(root, n, where, chunk) for n in rec["depth_exr"]],
-                speed=np.array(rec["speed"], dtype=np.float64),
-                time_step=float(rec["time_step"]),
-                K=np.array(rec["K"], dtype=np.float64),
-            )
-        )
     return scenes
-
-
-def read_rgb(path: Path) -> np.ndarray:
-    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    if img is None:
-        raise DataError(f"{path}: missing or unreadable image")
-    return img[..., ::-1].copy()
-
-
-def read_depth(path: Path) -> np.ndarray:
-    try:
-        return read_depth_exr(path)
-    except Exception as e:  # noqa: BLE001
-        raise DataError(f"{path}: missing or unreadable depth ({e})") from None
 
 
 class FrameStore:
@@ -138,7 +58,7 @@ class FrameStore:
 
     def __init__(self, scenes: list[Scene], cache: bool | None = None, progress: bool = True):
         self.scenes = scenes
-        first = read_rgb(scenes[0].rgb[0]) if scenes else np.zeros((1, 1, 3), np.uint8)
+        first = scenes[0].load_rgb(0) if scenes else np.zeros((1, 1, 3), np.uint8)
         self.height, self.width = first.shape[:2]
         frames = sum(len(s.rgb) for s in scenes)
         nbytes = frames * self.height * self.width * 7  # 3 bytes RGB + 4 bytes depth
@@ -152,8 +72,8 @@ class FrameStore:
                 tqdm(scenes, desc="caching frames", unit="scene", disable=not progress, leave=False)
             ):
                 for f in range(len(s.rgb)):
-                    self._rgb[k, f] = self._checked(read_rgb(s.rgb[f]), s.rgb[f])
-                    self._depth[k, f] = self._checked(read_depth(s.depth[f]), s.depth[f])
+                    self._rgb[k, f] = self._checked(s.load_rgb(f), s.rgb[f])
+                    self._depth[k, f] = self._checked(s.load_depth(f), s.depth[f])
 
     def _checked(self, a: np.ndarray, path: Path) -> np.ndarray:
         if a.shape[:2] != (self.height, self.width):
@@ -165,12 +85,12 @@ class FrameStore:
     def rgb(self, k: int, f: int) -> np.ndarray:
         if self.cached:
             return self._rgb[k, f]
-        return self._checked(read_rgb(self.scenes[k].rgb[f]), self.scenes[k].rgb[f])
+        return self._checked(self.scenes[k].load_rgb(f), self.scenes[k].rgb[f])
 
     def depth(self, k: int, f: int) -> np.ndarray:
         if self.cached:
             return self._depth[k, f]
-        return self._checked(read_depth(self.scenes[k].depth[f]), self.scenes[k].depth[f])
+        return self._checked(self.scenes[k].load_depth(f), self.scenes[k].depth[f])
 
 
 def normalise(img: np.ndarray) -> np.ndarray:

@@ -14,16 +14,17 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from benchmark.data import load_scenes, read_depth
+from benchmark.data import load_scenes
 from benchmark.flow import endpoint_error, flow_from_depth
+from stillbox_gen.dataset import NOMINAL_SHIFT
 
 
-def zero_flow_epe(data: Path, split: str, shift: int = 3) -> tuple[float, int]:
+def zero_flow_epe(data: Path, split: str, shift: int = NOMINAL_SHIFT) -> tuple[float, int]:
     """(mean per-pair EPE of zero flow in pixels, number of pairs) of a split."""
     errors = []
     for scene in load_scenes(data, split):
         for i in range(len(scene.depth) - shift):
-            depth = torch.from_numpy(read_depth(scene.depth[i + shift]).astype(np.float64))
+            depth = torch.from_numpy(scene.load_depth(i + shift).astype(np.float64))
             back = -torch.from_numpy(scene.translation(i, i + shift))  # second frame -> first
             gt = flow_from_depth(depth[None], torch.from_numpy(scene.K)[None], back[None])
             errors.append(endpoint_error(torch.zeros_like(gt), gt).item())

@@ -10,18 +10,17 @@ is measured in the same invocation.
 from __future__ import annotations
 
 import csv
-import multiprocessing
 import tempfile
 import time
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
-import cv2
 import numpy as np
 
-from . import config, formats, generate
+from . import config, formats, generate, layout
+from .dataset import Dataset
 from .scene import sample_scene
+from .workers import process_pool, render_scene
 
 REFERENCE_SAMPLES = 256
 # The baseline: path-traced Principled BSDF, 8 samples, 1 bounce, no denoiser, and each
@@ -68,26 +67,20 @@ def reference_psnr(
     c = cfg.camera
     init = (ref_render, c.width, c.height, 0, cfg.materials.textures_dir)
     values = []
-    ctx = multiprocessing.get_context("spawn")
-    with (
-        tempfile.TemporaryDirectory() as tmp,
-        ProcessPoolExecutor(workers, ctx, initializer=generate._worker_init, initargs=init) as pool,
-    ):
+    ds = Dataset(root)
+    with tempfile.TemporaryDirectory() as tmp, process_pool(workers, init) as pool:
         jobs = []
         for k in range(scenes):
             spec = sample_scene(cfg, k).to_dict()
             spec["camera"]["cam2world"] = [spec["camera"]["cam2world"][f] for f in frames]
             out = Path(tmp) / str(k)
-            jobs.append(
-                (k, out, pool.submit(generate._worker_render, spec, str(out), "png", False))
-            )
+            jobs.append((k, out, pool.submit(render_scene, spec, str(out), "png", False)))
         for k, out, job in jobs:
             job.result()
-            local = formats.local_index(k)
+            scene, local = ds.scene(k), layout.local_index(k)
             for i, f in enumerate(frames):
-                ours = cv2.imread(str(root / formats.chunk_name(k) / formats.rgb_name(local, f)))
-                ref = cv2.imread(str(out / formats.rgb_name(local, i)))
-                values.append(psnr(ours, ref))
+                ref = formats.read_rgb(out / layout.rgb_name(local, i))
+                values.append(psnr(scene.load_rgb(f), ref))
     return float(np.mean(values))
 
 

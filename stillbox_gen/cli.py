@@ -5,6 +5,7 @@ User mistakes print one line ``stillbox-gen: error: ...`` and exit with code 2, 
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 import os
@@ -17,6 +18,7 @@ import click
 from . import config
 from .config import ConfigError
 from .dataset import NOMINAL_SHIFT, default_root
+from .formats import DatasetError
 
 if TYPE_CHECKING:
     from .generate import RunOptions
@@ -296,7 +298,7 @@ def parse_shard(value: str) -> tuple[int, int]:
 @click.argument("dataset", type=click.Path(path_type=Path))
 def index(dataset: Path) -> None:
     """Index a folder filled by --shard runs: metadata.json, manifest.parquet, dataset.json."""
-    from .generate import index_dataset
+    from .dataset import index_dataset
 
     summary = index_dataset(dataset)
     click.echo(f"{dataset}: indexed {summary.scenes} scenes, {summary.frames} frames")
@@ -310,7 +312,8 @@ def merge(out: Path, sources: tuple[Path, ...]) -> None:
     the files equal a single run with the same seed. OUT may be one of the SOURCES."""
     from .merge import merge_datasets
 
-    copied, summary = merge_datasets(out, list(sources))
+    with reading():  # merge's messages name SOURCES and the scene themselves
+        copied, summary = merge_datasets(out, list(sources))
     click.echo(
         f"{out}: merged {copied} scenes from {len(sources)} folders; "
         f"indexed {summary.scenes} scenes, {summary.frames} frames"
@@ -416,13 +419,15 @@ def validate(dataset: Path, quick: bool) -> None:
 )
 def preview(dataset: Path, out: Path, scenes: int, max_depth: float) -> None:
     """Draw a contact sheet: first and last frame of a few scenes, with colour-mapped depth."""
+    from .dataset import Dataset
     from .preview import contact_sheet
 
-    if not (dataset / "manifest.parquet").is_file():
-        raise ConfigError(f"DATASET: '{dataset}' has no manifest.parquet (not a finished dataset)")
-    if scenes < 1 or max_depth <= 0:
-        raise ConfigError("--scenes and --max-depth: must be positive")
-    contact_sheet(dataset, out, scenes, max_depth)
+    with reading("DATASET"):
+        ds = Dataset(dataset)
+        ds.indices()  # a dataset without manifest.parquet is refused before the flags
+        if scenes < 1 or max_depth <= 0:
+            raise ConfigError("--scenes and --max-depth: must be positive")
+        contact_sheet(ds, out, scenes, max_depth)
     click.echo(f"wrote {out}")
 
 
@@ -467,7 +472,8 @@ def stats(dataset: Path, scenes: int, shift: int, flicker: int, out, max_depth: 
     (and render flicker), beside StillBox's published figures; writes stats.json, stats.png."""
     from .stats import run, table
 
-    result = run(dataset, scenes, shift, flicker, out, max_depth, progress=True)
+    with reading("DATASET"):
+        result = run(dataset, scenes, shift, flicker, out, max_depth, progress=True)
     click.echo(table(result))
     where = out or dataset
     click.echo(f"wrote {where / 'stats.json'} and {where / 'stats.png'}", err=True)
@@ -527,9 +533,20 @@ def bench(resolutions: str, configs: str, workers: int, psnr_scenes: int, csv_pa
 
 
 def generate_versions() -> str:
-    from .generate import versions
+    from .dataset import versions
 
     return ", ".join(f"{k} {v}" for k, v in versions().items())
+
+
+@contextlib.contextmanager
+def reading(argument: str | None = None):
+    """A DatasetError inside the block becomes a ConfigError (a one-line user error) naming
+    ``argument``, the command line's name of the dataset: ``DATASET: '...' has no
+    manifest.parquet``. Without ``argument``, the message is kept as it is."""
+    try:
+        yield
+    except DatasetError as e:
+        raise ConfigError(f"{argument}: {e}" if argument else str(e)) from None
 
 
 def main(argv: list[str] | None = None) -> None:

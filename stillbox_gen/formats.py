@@ -1,14 +1,7 @@
-"""On-disk format of a StillBox-gen dataset (documented in docs/FORMAT.md): names, records, I/O.
-
-Layout under the dataset root::
-
-    dataset.json            generator, versions, parameters, counts ("complete": true when done)
-    manifest.parquet        one row per frame (schema: MANIFEST_SCHEMA)
-    <chunk>/                integer-named folders of CHUNK_SIZE scenes (chunk = index // 200)
-        metadata.json       {"args": {...}, "scenes": [record, ...]} (original StillBox keys kept)
-        RGB_<s>_<f>.png     8-bit sRGB frames, s = scene index in the chunk, f = frame
-        depth_<s>_<f>.exr   float32 planar depth in metres, single channel "Y", ZIP compressed
-        .records/<s>.json   per-scene record; its presence marks the scene complete
+"""File formats of a StillBox-gen dataset (docs/FORMAT.md): depth EXR, 8-bit sRGB frames, JSON
+written atomically, SHA-256 checksums, and the check that a path read from a dataset stays inside
+it. Where each file lives is stillbox_gen.layout; reading and writing whole datasets is
+stillbox_gen.dataset.
 
 Every path read from a dataset (a record's file names, the manifest's paths) goes through
 :func:`resolve_inside`, so a crafted dataset cannot make a reader open or write a file outside it.
@@ -24,9 +17,10 @@ from pathlib import Path, PurePosixPath
 
 import numpy as np
 
-from .config import ConfigError
+# Layout names, also reachable here for callers of their former place (blender/render.py and
+# tests/test_render.py, test_golden.py); they are defined in stillbox_gen.layout.
+from .layout import chunk_name, depth_name, local_index, rgb_name, scene_files  # noqa: F401
 
-CHUNK_SIZE = 200
 FORMAT_VERSION = 1
 NO_SURFACE_DEPTH = 1e10  # what Cycles writes where a ray hits nothing within max_distance
 DEPTH_CONVENTION = (
@@ -41,49 +35,15 @@ def canonical_json(obj) -> str:
     return json.dumps(obj, sort_keys=True, separators=(",", ":"), allow_nan=False)
 
 
-def chunk_name(index: int) -> str:
-    return str(index // CHUNK_SIZE)
-
-
-def local_index(index: int) -> int:
-    return index % CHUNK_SIZE
-
-
-def rgb_name(local: int, frame: int, ext: str = "png") -> str:
-    return f"RGB_{local:04d}_{frame:02d}.{ext}"
-
-
-def depth_name(local: int, frame: int, ext: str = "exr") -> str:
-    return f"depth_{local:04d}_{frame:02d}.{ext}"
-
-
-RECORDS_DIR = ".records"
-METADATA_JSON = "metadata.json"
-
-
-def record_name(index: int) -> str:
-    """``<chunk>/.records/<s>.json``, relative to the dataset root."""
-    return f"{chunk_name(index)}/{RECORDS_DIR}/{local_index(index):04d}.json"
-
-
-def record_path(root: Path, index: int) -> Path:
-    return Path(root) / record_name(index)
-
-
-# Files ``stillbox-gen stats`` writes into the dataset root by default (not part of the format)
-STATS_FILES = ("stats.json", "stats.png")
-
-
-def scene_files(record: dict) -> list[str]:
-    """Every file name of a scene in its chunk folder (frames, depth, legacy copies), sorted."""
-    names = [*record["rgb"], *record["depth_exr"], *record["imgs"], *record["depth"]]
-    return sorted(set(names))
-
-
 # ---------------------------------------------------------------- paths read from a dataset
 
 
-class UnsafePathError(ConfigError):
+class DatasetError(ValueError):
+    """A dataset, or one of its files, that cannot be read; the message names the file (or the
+    record) and what is wrong with it. The command lines print it as a one-line user error."""
+
+
+class UnsafePathError(DatasetError):
     """A path read from a dataset that would lead outside the dataset folder."""
 
 
@@ -125,12 +85,6 @@ def file_sha256(path: Path) -> str:
         return hashlib.file_digest(f, "sha256").hexdigest()
 
 
-def scene_checksums(folder: Path, record: dict) -> dict[str, str]:
-    """{file name: SHA-256} of every file of a scene (:func:`scene_files`) found in ``folder``;
-    stored in the record as ``sha256``."""
-    return {name: file_sha256(Path(folder) / name) for name in scene_files(record)}
-
-
 # ---------------------------------------------------------------- atomic writes
 
 
@@ -153,7 +107,18 @@ def remove_tree(path: Path) -> None:
     shutil.rmtree(path, ignore_errors=True)
 
 
-# ---------------------------------------------------------------- depth EXR
+# ---------------------------------------------------------------- frames and depth
+
+
+def read_rgb(path: Path) -> np.ndarray:
+    """An 8-bit frame (PNG or JPEG) as (H, W, 3) uint8 in RGB order (sRGB values, 0-255).
+    DatasetError naming the file when it is missing or does not decode."""
+    import cv2
+
+    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if img is None:
+        raise DatasetError(f"cannot read image '{path}'")
+    return img[..., ::-1].copy()
 
 
 def write_depth_exr(path: Path, depth: np.ndarray) -> None:
@@ -176,6 +141,15 @@ def read_depth_exr(path: Path) -> np.ndarray:
         return np.array(channels["Y"].pixels, dtype=np.float32)
 
 
+def read_depth(path: Path) -> np.ndarray:
+    """:func:`read_depth_exr` of a dataset's file: DatasetError naming the file when it is
+    missing or unreadable."""
+    try:
+        return read_depth_exr(path)
+    except Exception as e:  # noqa: BLE001 - any reader failure is the dataset's file
+        raise DatasetError(f"cannot read depth '{path}' ({e})") from None
+
+
 def read_multilayer_exr(path: Path) -> dict[str, np.ndarray]:
     """All channels of a (possibly multi-part) EXR, by full channel name."""
     import OpenEXR
@@ -189,65 +163,3 @@ def linear_to_srgb8(rgb: np.ndarray) -> np.ndarray:
     x = np.clip(rgb, 0.0, 1.0)
     srgb = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
     return np.round(srgb * 255.0).astype(np.uint8)
-
-
-# ---------------------------------------------------------------- metadata records
-
-
-def scene_record(spec: dict, image_format: str, legacy: bool) -> dict:
-    """The metadata.json entry of one scene, built from its SceneSpec dict.
-
-    Original StillBox keys first (imgs, depth, speed, time_step, length, orientation), then ours;
-    ``sha256`` (:func:`scene_checksums`) is added last, once the files are written.
-    """
-    cam = spec["camera"]
-    local, n = local_index(spec["index"]), len(cam["cam2world"])
-    rgb = [rgb_name(local, f, image_format) for f in range(n)]
-    exr = [depth_name(local, f) for f in range(n)]
-    c2w = [np.array(m) for m in cam["cam2world"]]
-    w2c = [np.linalg.inv(m) for m in c2w]
-    displacement = float(np.linalg.norm(cam["speed"]) * cam["time_step"])
-    return {
-        "imgs": [rgb_name(local, f, "jpg") for f in range(n)] if legacy else rgb,
-        "depth": [depth_name(local, f, "npy") for f in range(n)] if legacy else exr,
-        "speed": cam["speed"],
-        "time_step": cam["time_step"],
-        "length": n,
-        "orientation": cam["orientation"],
-        "index": spec["index"],
-        "scene_in_chunk": local,
-        "seed": spec["seed"],
-        "rejected": spec["rejected"],
-        "rgb": rgb,
-        "depth_exr": exr,
-        "resolution": [cam["width"], cam["height"]],
-        "K": cam["K"],
-        "displacement": displacement,
-        "cam2world": cam["cam2world"],
-        "world2cam": [m.tolist() for m in w2c],
-        "near_clip": cam["near_clip"],
-        "far_clip": cam["far_clip"],
-        "primitives": spec["primitives"],
-        "box": spec["box"],
-        "light": spec["light"],
-    }
-
-
-def chunk_args(cfg_dict: dict, generator: str) -> dict:
-    """The ``args`` block of every metadata.json: original keys plus every generator parameter."""
-    from .camera import fov_from_focal
-
-    cam = cfg_dict["camera"]
-    focal = cam["focal_px"]
-    fov = cam["fov_deg"] if focal is None else fov_from_focal(focal, cam["width"])
-    return {
-        "fov": fov,
-        "resolution": [cam["width"], cam["height"]],
-        "frames": cam["frames"],
-        "displacement": cam["displacement"],
-        "max_distance": cfg_dict["render"]["max_distance"],
-        "depth_convention": DEPTH_CONVENTION,
-        "generator": generator,
-        "format_version": FORMAT_VERSION,
-        "config": cfg_dict,
-    }

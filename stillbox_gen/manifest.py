@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from . import formats
+from . import formats, layout
 
 SPLITS = ("train", "val", "test")
 
@@ -19,7 +20,7 @@ def _f(name: str, type_: pa.DataType, doc: str) -> pa.Field:
 
 MANIFEST_SCHEMA = pa.schema(
     [
-        _f("scene", pa.int64(), "global scene index (chunk = scene // 200)"),
+        _f("scene", pa.int64(), f"global scene index (chunk = scene // {layout.CHUNK_SIZE})"),
         _f("chunk", pa.string(), "chunk folder name"),
         _f("scene_in_chunk", pa.int32(), "scene index inside the chunk (in file names)"),
         _f("frame", pa.int32(), "frame index in the scene, from 0"),
@@ -56,7 +57,7 @@ def split_of(seed: int, index: int, shares: tuple[float, float, float]) -> str:
 
 
 def manifest_rows(record: dict, seed: int, shares: tuple[float, float, float]) -> list[dict]:
-    index, chunk = record["index"], formats.chunk_name(record["index"])
+    index, chunk = record["index"], layout.chunk_name(record["index"])
     K = np.array(record["K"])
     split = split_of(seed, index, shares)
     speed, dt = record["speed"], record["time_step"]
@@ -91,13 +92,16 @@ def manifest_rows(record: dict, seed: int, shares: tuple[float, float, float]) -
 
 
 def write_manifest(path: Path, records: list[dict], seed: int, shares) -> pa.Table:
+    """Write the manifest of ``records`` (scene order) via a temporary name of this process (two
+    shards finishing together may index at once), then rename; returns the table."""
     rows = [row for r in records for row in manifest_rows(r, seed, shares)]
     table = pa.Table.from_pylist(rows, schema=MANIFEST_SCHEMA)
-    tmp = path.with_name(f".{path.name}.tmp")
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
     pq.write_table(table, tmp)
     tmp.replace(path)
     return table
 
 
-def read_manifest(path: Path) -> pa.Table:
-    return pq.read_table(path)
+def read_manifest(path: Path, columns: list[str] | None = None) -> pa.Table:
+    """The manifest table (only ``columns`` when given)."""
+    return pq.read_table(path, columns=columns)

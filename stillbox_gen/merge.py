@@ -17,19 +17,18 @@ import os
 import shutil
 from pathlib import Path
 
-from . import config, formats
+from . import config, formats, layout
 from .config import ConfigError
-from .generate import DATASET_JSON, index_dataset, pending_indices, prepare_output
+from .dataset import Dataset, Totals, index_dataset, pending_indices, prepare_output
+from .formats import DatasetError
 
 
 def _info(folder: Path) -> dict:
-    path = folder / DATASET_JSON
-    if not path.is_file():
-        raise ConfigError(f"SOURCES: '{folder}' has no {DATASET_JSON} (not a stillbox-gen dataset)")
+    """dataset.json of a source (ConfigError naming SOURCES when it has none)."""
     try:
-        return json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as e:
-        raise ConfigError(f"SOURCES: cannot read '{path}' ({e})") from None
+        return Dataset(folder).info
+    except DatasetError as e:
+        raise ConfigError(f"SOURCES: {e}") from None
 
 
 def _place(src: Path, dst: Path) -> None:
@@ -43,11 +42,12 @@ def _place(src: Path, dst: Path) -> None:
     os.replace(tmp, dst)
 
 
-def merge_datasets(out: Path, sources: list[Path]) -> tuple[int, object]:
+def merge_datasets(out: Path, sources: list[Path]) -> tuple[int, Totals]:
     """Copy the complete scenes of ``sources`` into ``out`` and index it.
 
-    Returns (scenes copied now, generate.Summary). Raises ConfigError (naming the folder) when the
-    sources disagree, OUT holds another dataset, or scenes are missing from every source.
+    Returns (scenes copied now, what the indexed dataset holds). Raises ConfigError (naming the
+    folder) when the sources disagree, OUT holds another dataset, or scenes are missing from
+    every source.
     """
     if not sources:
         raise ConfigError("SOURCES: give at least one dataset folder to merge")
@@ -69,16 +69,16 @@ def merge_datasets(out: Path, sources: list[Path]) -> tuple[int, object]:
 
     copied = 0
     for k in pending_indices(out, first["scenes"]):
-        src = next((s for s in sources if formats.record_path(s, k).is_file()), None)
+        src = next((s for s in sources if layout.record_path(s, k).is_file()), None)
         if src is None:  # index_dataset below names every missing scene
             continue
-        chunk = formats.chunk_name(k)
+        chunk = layout.chunk_name(k)
         where = f"SOURCES: scene {k} in '{src}'"
-        rec_src = formats.resolve_inside(src, formats.record_name(k), where)
-        rec_dst = formats.resolve_inside(out, formats.record_name(k), where)
+        rec_src = formats.resolve_inside(src, layout.record_name(k), where)
+        rec_dst = formats.resolve_inside(out, layout.record_name(k), where)
         try:
             record = json.loads(rec_src.read_text())
-            names = formats.scene_files(record)
+            names = layout.scene_files(record)
         except (OSError, json.JSONDecodeError, KeyError, TypeError) as e:
             raise ConfigError(f"{where} is unreadable ({e})") from None
         where = f"SOURCES: {rec_src}: scene {k}"

@@ -7,14 +7,14 @@ the result is the same files as a local run with the same seed. Every node needs
 (``pip install '.[ray]'``) and, with ``--textures``, the texture folder at the same path.
 
 An actor is retired after ``recycle_after`` scenes (bounded memory); a dead actor
-(``RayActorError``) makes ``generate.render_pending`` replace the pool and retry its scenes.
+(``RayActorError``) makes the run loop (``generate.render_pending``) replace the pool and retry
+its scenes. RayPool has the interface of ``workers.LocalPool``.
 Requires the optional ``ray`` extra; nothing else in the package imports ``ray``.
 """
 
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import os
 import tempfile
 import threading
@@ -22,6 +22,7 @@ from concurrent.futures import Future
 from pathlib import Path
 
 from .config import ConfigError, DatasetConfig
+from .workers import init_worker, render_scene, worker_init_args
 
 
 def _import_ray():
@@ -43,14 +44,10 @@ class RenderActor:
     """One Blender worker process on a Ray node (wrapped by ``ray.remote`` in RayPool)."""
 
     def __init__(self, init_args: tuple) -> None:
-        from .blender.render import init_worker
-
         init_worker(*init_args)
 
     def render(self, spec: dict, image_format: str, legacy: bool) -> dict:
         """Render a scene; return its statistics plus ``files``: {file name: bytes}."""
-        from .blender.render import render_scene
-
         with tempfile.TemporaryDirectory(prefix="stillbox-ray-") as tmp:
             stats = render_scene(spec, tmp, image_format, legacy)
             stats["files"] = {p.name: p.read_bytes() for p in sorted(Path(tmp).iterdir())}
@@ -93,16 +90,15 @@ def ray_session(address: str | None):
 
 
 class RayPool:
-    """``opts.workers`` RenderActors; each reserves ``threads`` CPUs of the cluster (1 when
-    ``opts.threads`` is 0) and renders with that many Cycles threads, so Ray's CPU accounting
-    holds on many-core nodes. Scenes go to the actor with the fewest in flight."""
+    """``workers`` RenderActors; each reserves ``threads`` CPUs of the cluster (1 when
+    ``threads`` is 0) and renders with that many Cycles threads, so Ray's CPU accounting
+    holds on many-core nodes. Scenes go to the actor with the fewest in flight; an actor is
+    replaced after ``recycle_after`` scenes."""
 
-    def __init__(self, cfg: DatasetConfig, opts) -> None:
-        from .generate import worker_init_args
-
+    def __init__(self, cfg: DatasetConfig, workers: int, threads: int, recycle_after: int):
         ray = self._ray = _import_ray()
         self.died_errors = (ray.exceptions.RayActorError, ray.exceptions.WorkerCrashedError)
-        threads = max(opts.threads, 1)
+        threads = max(threads, 1)
         self._actor_cls = ray.remote(RenderActor).options(
             num_cpus=threads,
             max_restarts=0,
@@ -110,10 +106,10 @@ class RayPool:
             # (measured: a training job) slowed rendering 17x. Render like local workers.
             runtime_env={"env_vars": {"RAY_worker_niceness": "0"}},
         )
-        self._init_args = worker_init_args(cfg, dataclasses.replace(opts, threads=threads))
+        self._init_args = worker_init_args(cfg, threads)
         self._lock = threading.Lock()
-        self._recycle_after = opts.recycle_after
-        self._slots = [self._new_slot() for _ in range(opts.workers)]
+        self._recycle_after = recycle_after
+        self._slots = [self._new_slot() for _ in range(workers)]
 
     def _new_slot(self) -> dict:
         return {"actor": self._actor_cls.remote(self._init_args), "given": 0, "in_flight": 0}

@@ -29,16 +29,15 @@ points in a spawned process.
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import tempfile
 from pathlib import Path
 
 import numpy as np
 
-from . import formats
+from . import formats, layout
 from .config import ConfigError
-from .dataset import MAX_DEPTH, NOMINAL_SHIFT
+from .dataset import MAX_DEPTH, NOMINAL_SHIFT, Dataset
 
 #: Pixel-depth bands in metres: [0, 5), [5, 10), ..., [75, 100), then [100, inf) ("> 100", which
 #: also holds pixels whose ray met no surface, stored as formats.NO_SURFACE_DEPTH).
@@ -250,66 +249,15 @@ def warp_residuals(
 # ---------------------------------------------------------------- dataset access
 
 
-def _load_dataset(root: Path) -> tuple[dict, list[int]]:
-    """(dataset.json, scene indices in the manifest); ConfigError when ``root`` is no dataset."""
-    from . import manifest
-
-    root = Path(root)
-    if not root.is_dir():
-        raise ConfigError(f"DATASET: '{root}' is not a folder")
-    info_path, man_path = root / "dataset.json", root / "manifest.parquet"
-    if not info_path.is_file():
-        raise ConfigError(f"DATASET: '{root}' has no dataset.json (not a stillbox-gen dataset)")
-    try:
-        info = json.loads(info_path.read_text())
-    except (OSError, json.JSONDecodeError) as e:
-        raise ConfigError(f"DATASET: cannot read '{info_path}' ({e})") from None
-    if not man_path.is_file():
-        raise ConfigError(f"DATASET: '{root}' has no manifest.parquet (not a finished dataset)")
-    try:
-        scenes = manifest.read_manifest(man_path).column("scene").to_pylist()
-    except Exception as e:  # noqa: BLE001 - any reader failure is the user's file
-        raise ConfigError(f"DATASET: cannot read '{man_path}' ({e})") from None
-    return info, sorted(set(scenes))
+def _open(root: Path | Dataset) -> Dataset:
+    """The dataset at ``root`` (a Dataset is used as it is, so its files are read once)."""
+    return root if isinstance(root, Dataset) else Dataset(root)
 
 
-def _records(root: Path, indices: list[int]) -> list[dict]:
-    """Scene records (metadata.json entries) of ``indices``, in that order."""
-    by_index: dict[int, dict] = {}
-    for chunk in sorted({formats.chunk_name(k) for k in indices}, key=int):
-        path = formats.resolve_inside(root, f"{chunk}/{formats.METADATA_JSON}", "DATASET")
-        try:
-            meta = json.loads(path.read_text())
-        except (OSError, json.JSONDecodeError) as e:
-            raise ConfigError(f"DATASET: cannot read '{path}' ({e})") from None
-        by_index.update({s["index"]: s for s in meta["scenes"]})
-    missing = [k for k in indices if k not in by_index]
-    if missing:
-        raise ConfigError(
-            f"DATASET: scenes {missing[:5]} are in the manifest but not metadata.json"
-        )
-    records = [by_index[k] for k in indices]
-    for rec in records:  # refuse names leading outside the dataset before measuring anything
-        for key in ("rgb", "depth_exr"):
-            for f in range(len(rec[key])):
-                _scene_file(root, rec, key, f)
-    return records
-
-
-def _scene_file(root: Path, rec: dict, key: str, frame: int) -> Path:
-    """Checked path of file ``rec[key][frame]`` of a scene record (never outside ``root``)."""
-    chunk = formats.chunk_name(rec["index"])
-    where = f"DATASET: {chunk}/metadata.json: scene {rec['index']}"
-    return formats.resolve_inside(root, rec[key][frame], where, folder=chunk)
-
-
-def _read_rgb(path: Path) -> np.ndarray:
-    import cv2
-
-    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    if img is None:
-        raise ConfigError(f"DATASET: cannot read image '{path}'")
-    return img
+def _bgr(rgb: np.ndarray) -> np.ndarray:
+    """A frame in BGR order: the figures sum channels in that order (another order could move
+    the last digits of float sums)."""
+    return rgb[..., ::-1]
 
 
 def _check_numbers(scenes: int, shift: int, frames: int, max_depth: float, flicker: int) -> None:
@@ -338,7 +286,7 @@ def _share(c: int, n: int) -> float | None:
 
 
 def dataset_stats(
-    root: Path,
+    root: Path | Dataset,
     scenes: int = 200,
     shift: int = NOMINAL_SHIFT,
     max_depth: float = MAX_DEPTH,
@@ -353,14 +301,14 @@ def dataset_stats(
     """
     from tqdm import tqdm
 
-    root = Path(root)
-    info, available = _load_dataset(root)
+    ds = _open(root)
+    info, available = ds.info, ds.indices()
     frames = int(info.get("frames_per_scene", 0))
     _check_numbers(scenes, shift, frames, max_depth, 0)
     chosen = available[:scenes]
     if not chosen:
-        raise ConfigError(f"DATASET: '{root}' holds no scenes")
-    records = _records(root, chosen)
+        raise ConfigError(f"DATASET: '{ds.root}' holds no scenes")
+    scenes_used = ds.scenes(limit=scenes)  # every file name checked before measuring
 
     d_all, d_part = depth_histogram(), {p: depth_histogram() for p in PARTS}
     bands = np.zeros(len(BAND_EDGES_M), dtype=np.int64)
@@ -373,15 +321,14 @@ def dataset_stats(
     n_pairs = n_frames = 0
     resolution = None
 
-    for rec in tqdm(records, desc="stats", unit="scene", disable=not progress, dynamic_ncols=True):
-        w, h = rec["resolution"]
+    bar = tqdm(scenes_used, desc="stats", unit="scene", disable=not progress, dynamic_ncols=True)
+    for scene in bar:
+        w, h = scene.record["resolution"]
         resolution = resolution or [w, h]
-        K = np.asarray(rec["K"], dtype=np.float64)
-        poses = [np.asarray(m, dtype=np.float64) for m in rec["cam2world"]]
-        box = rec["box"]
+        K, poses, box = scene.K, list(scene.cam2world), scene.record["box"]
         depths, walls = [], []
         for f in range(len(poses)):
-            d = formats.read_depth_exr(_scene_file(root, rec, "depth_exr", f)).astype(np.float64)
+            d = scene.load_depth(f).astype(np.float64)
             wd = box_depth(K, poses[f], box["center"], box["half_extents"], w, h)
             wall = wall_mask(d, wd)
             depths.append(d)
@@ -396,7 +343,7 @@ def dataset_stats(
             for p, m in (("walls", wall), ("objects", ~wall)):
                 d_part[p].add(d[m])
                 coarse[p].add(d[m])
-        imgs = [_read_rgb(_scene_file(root, rec, "rgb", f)) for f in range(len(rec["rgb"]))]
+        imgs = [_bgr(scene.load_rgb(f)) for f in range(scene.frames)]
         for i in range(len(poses) - shift):
             j = i + shift
             flow, z_j = true_flow(depths[i], K, poses[i], poses[j])
@@ -446,7 +393,7 @@ def dataset_stats(
         p: _share(res["warped"][p][1], res["unwarped"][p][1]) for p in PARTS
     }  # pixels of the pairs kept for the warped residual
     return {
-        "dataset": str(root),
+        "dataset": str(ds.root),
         "generator": info.get("versions", {}).get("stillbox-gen"),
         "resolution": resolution,
         "frames_per_scene": frames,
@@ -543,25 +490,24 @@ def spec_from_record(rec: dict, frames: list[int] | None = None) -> dict:
     return SceneSpec.from_dict(spec).to_dict()
 
 
-def flicker_stats(root: Path, count: int, progress: bool = False, threads: int = 0) -> dict:
+def flicker_stats(
+    root: Path | Dataset, count: int, progress: bool = False, threads: int = 0
+) -> dict:
     """Re-render the pose of frame 0 of the first ``count`` scenes with the dataset's render
     settings: as frame 1 of its scene ("same_pose": what the generator gives when two frames
     share a pose, whatever its per-frame seeding), and as frame 0 with scene seed + 1
     ("other_seed": how much the sample placement alone moves pixels). Mean absolute difference
     against the stored frame, grey levels (0-255, mean over the 3 channels), on walls and on
     objects; also the largest depth difference (metres), a check of the pose."""
-    import multiprocessing
-    from concurrent.futures import ProcessPoolExecutor
-
     from tqdm import tqdm
 
-    from . import generate
+    from .workers import process_pool, render_scene
 
-    root = Path(root)
-    info, available = _load_dataset(root)
+    ds = _open(root)
+    info, available = ds.info, ds.indices()
     if not 1 <= count <= len(available):
         raise ConfigError(f"--flicker: must be between 0 and {len(available)} scenes, got {count}")
-    records = _records(root, available[:count])
+    scenes = ds.scenes(limit=count)
     cfg = info["config"]
     cam, render = cfg["camera"], cfg["render"]
     image_format = render.get("image_format", "png")
@@ -569,41 +515,35 @@ def flicker_stats(root: Path, count: int, progress: bool = False, threads: int =
     sums = {k: {p: [0.0, 0] for p in PARTS} for k in ("same_pose", "other_seed")}
     depth_diff = 0.0
     used = []
-    ctx = multiprocessing.get_context("spawn")
     with (
         tempfile.TemporaryDirectory(prefix="stillbox-stats-") as tmp,
-        ProcessPoolExecutor(1, ctx, initializer=generate._worker_init, initargs=init) as pool,
+        process_pool(1, init) as pool,
         tqdm(
             total=2 * count, desc="flicker", unit="render", disable=not progress, dynamic_ncols=True
         ) as bar,
     ):
-        for rec in records:
-            local = formats.local_index(rec["index"])
-            stored = _read_rgb(_scene_file(root, rec, "rgb", 0)).astype(np.float32)
-            depth = formats.read_depth_exr(_scene_file(root, rec, "depth_exr", 0))
-            depth = depth.astype(np.float64)
-            K = np.asarray(rec["K"], dtype=np.float64)
-            w, h = rec["resolution"]
-            wall = wall_mask(
-                depth,
-                box_depth(
-                    K, rec["cam2world"][0], rec["box"]["center"], rec["box"]["half_extents"], w, h
-                ),
-            )
+        for scene in scenes:
+            rec = scene.record
+            local = layout.local_index(rec["index"])
+            stored = _bgr(scene.load_rgb(0)).astype(np.float32)
+            depth = scene.load_depth(0).astype(np.float64)
+            (w, h), box = rec["resolution"], rec["box"]
+            box_d = box_depth(scene.K, scene.cam2world[0], box["center"], box["half_extents"], w, h)
+            wall = wall_mask(depth, box_d)
             runs = (("same_pose", rec["seed"], [0, 0]), ("other_seed", rec["seed"] + 1, [0]))
             for key, seed, frames in runs:
                 spec = spec_from_record(rec, frames=frames)
                 spec["seed"] = seed
                 out = Path(tmp) / f"{rec['index']}-{key}"
-                pool.submit(generate._worker_render, spec, str(out), image_format, False).result()
+                pool.submit(render_scene, spec, str(out), image_format, False).result()
                 last = len(frames) - 1
-                name = formats.rgb_name(local, last, image_format)
-                img = _read_rgb(out / name).astype(np.float32)
+                name = layout.rgb_name(local, last, image_format)
+                img = _bgr(formats.read_rgb(out / name)).astype(np.float32)
                 diff = np.abs(img - stored).mean(axis=-1)
                 for p, m in (("walls", wall), ("objects", ~wall)):
                     sums[key][p][0] += float(diff[m].sum(dtype=np.float64))
                     sums[key][p][1] += int(m.sum())
-                new_depth = formats.read_depth_exr(out / formats.depth_name(local, last))
+                new_depth = formats.read_depth_exr(out / layout.depth_name(local, last))
                 depth_diff = max(depth_diff, float(np.abs(new_depth - depth).max()))
                 bar.update(1)
             used.append([rec["index"], 0])
@@ -751,22 +691,22 @@ def run(
 ) -> dict:
     """Everything ``stillbox-gen stats`` does but printing: measure, then write stats.json and
     stats.png into ``out`` (default ``root``). Returns the stats dict."""
-    root = Path(root)
-    info, available = _load_dataset(root)
+    ds = Dataset(root)
+    info, available = ds.info, ds.indices()
     _check_numbers(scenes, shift, int(info.get("frames_per_scene", 0)), max_depth, flicker)
     if flicker > min(scenes, len(available)):
         raise ConfigError(
             f"--flicker: at most the {min(scenes, len(available))} scenes used, got {flicker}"
         )
-    out = Path(out) if out is not None else root
+    out = Path(out) if out is not None else ds.root
     if out.exists() and not out.is_dir():
         raise ConfigError(f"--out: '{out}' is a file, not a folder")
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as e:
         raise ConfigError(f"--out: cannot create '{out}' ({e.strerror})") from None
-    stats = dataset_stats(root, scenes, shift, max_depth, progress)
-    stats["flicker"] = flicker_stats(root, flicker, progress) if flicker else None
+    stats = dataset_stats(ds, scenes, shift, max_depth, progress)
+    stats["flicker"] = flicker_stats(ds, flicker, progress) if flicker else None
     formats.atomic_write_json(out / "stats.json", stats, indent=2)
     plot(stats, out / "stats.png")
     return stats

@@ -15,8 +15,8 @@ import cv2
 import jsonschema
 import numpy as np
 
-from . import config, formats, manifest, schema
-from .generate import DATASET_JSON, MANIFEST
+from . import config, formats, layout, manifest, schema
+from .layout import DATASET_JSON, MANIFEST
 from .scene import scene_seed
 
 
@@ -74,7 +74,7 @@ def _info_problems(info: dict) -> list[str]:
 
 def _record_problems(root: Path, s: dict) -> list[str]:
     """The scene's ``.records`` file must exist and equal its metadata.json entry ``s``."""
-    name = formats.record_name(s["index"])
+    name = layout.record_name(s["index"])
     try:
         path = formats.resolve_inside(root, name, f"scene {s['index']}")
         on_disk = json.loads(path.read_text())
@@ -101,7 +101,7 @@ def _file_problems(root: Path, chunk: str, s: dict, check: bool) -> tuple[list[s
     if sums is not None and not isinstance(sums, dict):
         return [f"{where}: sha256 is not a {{file name: digest}} object"], True
     safe = set()
-    for name in formats.scene_files(s):
+    for name in layout.scene_files(s):
         rel = f"{chunk}/{name}"
         try:
             path = formats.resolve_inside(root, name, where, folder=chunk)
@@ -122,7 +122,7 @@ def _file_problems(root: Path, chunk: str, s: dict, check: bool) -> tuple[list[s
                 "(the file was changed, replaced or swapped)"
             )
     if sums is not None:
-        for name in sorted(set(sums) - set(formats.scene_files(s))):
+        for name in sorted(set(sums) - set(layout.scene_files(s))):
             problems.append(f"{where}: sha256 names '{name}', which is no file of the scene")
     if check:
         w, h = s["resolution"]
@@ -156,18 +156,18 @@ def _stray_files(root: Path, chunk: str, named: set[str], locals_: set[int]) -> 
     problems = []
     folder = root / chunk
     for p in sorted(folder.iterdir()):
-        if p.name in named or p.name in (formats.METADATA_JSON, formats.RECORDS_DIR):
+        if p.name in named or p.name in (layout.METADATA_JSON, layout.RECORDS_DIR):
             continue
         if p.name.startswith(".tmp-") and p.is_dir():
             continue  # reported as a leftover temporary folder
         kind = "folder" if p.is_dir() else "file"
         problems.append(f"{chunk}/{p.name}: stray {kind} (no scene record names it)")
-    records = folder / formats.RECORDS_DIR
+    records = folder / layout.RECORDS_DIR
     if records.is_dir():
         expected = {f"{k:04d}.json" for k in locals_}
         for p in sorted(records.iterdir()):
             if p.name not in expected:
-                problems.append(f"{chunk}/{formats.RECORDS_DIR}/{p.name}: stray file (no scene)")
+                problems.append(f"{chunk}/{layout.RECORDS_DIR}/{p.name}: stray file (no scene)")
     return problems
 
 
@@ -191,9 +191,9 @@ def validate_dataset(root: Path, check_pixels: bool = True) -> tuple[list[str], 
     if not isinstance(info["config"], dict):
         return problems, stats
     n_scenes, n_frames = info["scenes"], info["frames_per_scene"]
-    n_chunks = -(-n_scenes // formats.CHUNK_SIZE)
+    n_chunks = layout.chunk_count(n_scenes)
     expected_dirs = {str(c) for c in range(n_chunks)}
-    root_files = {DATASET_JSON, MANIFEST, *formats.STATS_FILES}
+    root_files = {DATASET_JSON, MANIFEST, *layout.STATS_FILES}
     for p in sorted(root.iterdir()):
         if p.is_dir() and p.name not in expected_dirs:
             problems.append(
@@ -206,7 +206,7 @@ def validate_dataset(root: Path, check_pixels: bool = True) -> tuple[list[str], 
     unchecked: list[int] = []  # scenes whose record holds no checksums (older datasets)
     for c in range(n_chunks):
         try:
-            meta_path = formats.resolve_inside(root, f"{c}/{formats.METADATA_JSON}", f"chunk {c}")
+            meta_path = formats.resolve_inside(root, f"{c}/{layout.METADATA_JSON}", f"chunk {c}")
             meta = json.loads(meta_path.read_text())
         except formats.UnsafePathError as e:
             problems.append(str(e))
@@ -219,7 +219,7 @@ def validate_dataset(root: Path, check_pixels: bool = True) -> tuple[list[str], 
         if found:
             problems += _unsafe_names(root, str(c), meta)
             continue
-        want = list(range(c * formats.CHUNK_SIZE, min(n_scenes, (c + 1) * formats.CHUNK_SIZE)))
+        want = list(layout.chunk_scenes(c, n_scenes))
         got = [s["index"] for s in meta["scenes"]]
         if got != want:
             problems.append(f"{c}/metadata.json: scenes {got[:3]}... expected {want[:3]}...")
@@ -227,7 +227,7 @@ def validate_dataset(root: Path, check_pixels: bool = True) -> tuple[list[str], 
             problems.append(f"{c}/{tmp.name}: leftover temporary folder")
         named: set[str] = set()
         for s in meta["scenes"]:
-            named.update(formats.scene_files(s))
+            named.update(layout.scene_files(s))
             if s["length"] != n_frames or any(
                 len(s[k]) != n_frames for k in ("imgs", "depth", "rgb", "depth_exr", "cam2world")
             ):
@@ -292,7 +292,7 @@ def _seed_problems(seed: int, records: list[dict]) -> list[str]:
             f"{r['seed']} in its record, {want} from seed {seed}): dataset.json was edited"
         ]
     return [
-        f"{formats.chunk_name(r['index'])}/metadata.json: scene {r['index']}: seed {r['seed']} "
+        f"{layout.chunk_name(r['index'])}/metadata.json: scene {r['index']}: seed {r['seed']} "
         f"is not the one derived from dataset seed {seed} ({want})"
         for r, want in bad
     ]

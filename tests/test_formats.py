@@ -1,4 +1,5 @@
-"""On-disk formats: depth EXR, sRGB conversion, JSON records and the parquet manifest."""
+"""On-disk formats: depth EXR, sRGB conversion, JSON, the layout's records and the parquet
+manifest."""
 
 import os
 
@@ -12,7 +13,7 @@ import jsonschema  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
-from stillbox_gen import config, formats, manifest, schema  # noqa: E402
+from stillbox_gen import config, dataset, formats, layout, manifest, schema  # noqa: E402
 from stillbox_gen.scene import sample_scene  # noqa: E402
 
 ORIGINAL_KEYS = ["imgs", "depth", "speed", "time_step", "length", "orientation"]
@@ -108,7 +109,7 @@ def spec(cfg):
 
 def test_scene_record_keeps_original_keys_and_names(spec):
     """Records start with the original StillBox keys and name files RGB_<ssss>_<ff>.png."""
-    rec = formats.scene_record(spec, "png", legacy=False)
+    rec = layout.scene_record(spec, "png", legacy=False)
     assert list(rec)[:6] == ORIGINAL_KEYS
     assert rec["length"] == 10 and rec["scene_in_chunk"] == 5 and rec["index"] == 205
     for names in (rec["imgs"], rec["rgb"], rec["depth"], rec["depth_exr"]):
@@ -118,12 +119,12 @@ def test_scene_record_keeps_original_keys_and_names(spec):
     assert all(re.fullmatch(r"RGB_0005_\d{2}\.png", n) for n in rec["rgb"])
     assert rec["rgb"][3] == "RGB_0005_03.png"
     assert rec["depth_exr"][9] == "depth_0005_09.exr"
-    assert formats.scene_record(spec, "jpg", legacy=False)["rgb"][0] == "RGB_0005_00.jpg"
+    assert layout.scene_record(spec, "jpg", legacy=False)["rgb"][0] == "RGB_0005_00.jpg"
 
 
 def test_scene_record_geometry(spec):
     """world2cam inverts cam2world for every frame and the displacement is 0.1 m."""
-    rec = formats.scene_record(spec, "png", legacy=False)
+    rec = layout.scene_record(spec, "png", legacy=False)
     for c2w, w2c in zip(rec["cam2world"], rec["world2cam"], strict=True):
         np.testing.assert_allclose(np.array(w2c) @ np.array(c2w), np.eye(4), atol=1e-12)
     assert rec["displacement"] == pytest.approx(0.1, rel=1e-12)
@@ -133,7 +134,7 @@ def test_scene_record_geometry(spec):
 
 def test_scene_record_legacy_names(spec):
     """legacy=True names .jpg frames and .npy depth in imgs/depth but keeps png/exr files."""
-    rec = formats.scene_record(spec, "png", legacy=True)
+    rec = layout.scene_record(spec, "png", legacy=True)
     assert rec["imgs"][2] == "RGB_0005_02.jpg" and rec["depth"][2] == "depth_0005_02.npy"
     assert all(n.endswith(".png") for n in rec["rgb"])
     assert all(n.endswith(".exr") for n in rec["depth_exr"])
@@ -142,7 +143,7 @@ def test_scene_record_legacy_names(spec):
 @pytest.mark.parametrize("legacy", [False, True])
 def test_scene_record_matches_schema(spec, legacy):
     """The record is strict JSON and validates against schema.SCENE_RECORD."""
-    rec = json.loads(json.dumps(formats.scene_record(spec, "png", legacy), allow_nan=False))
+    rec = json.loads(json.dumps(layout.scene_record(spec, "png", legacy), allow_nan=False))
     jsonschema.validate(rec, schema.SCENE_RECORD)
     rec["rgb"][0] = "RGB_0005.png"
     with pytest.raises(jsonschema.ValidationError):
@@ -185,14 +186,14 @@ def test_scene_checksums_cover_every_scene_file(tmp_path, spec):
     """scene_checksums hashes every file a record names (legacy copies too), by SHA-256."""
     import hashlib
 
-    rec = formats.scene_record(spec, "png", legacy=True)
-    names = formats.scene_files(rec)
+    rec = layout.scene_record(spec, "png", legacy=True)
+    names = layout.scene_files(rec)
     assert len(names) == 40 and names == sorted(
         set(rec["rgb"] + rec["imgs"] + rec["depth"] + rec["depth_exr"])
     )
     for i, name in enumerate(names):
         (tmp_path / name).write_bytes(bytes([i]))
-    sums = formats.scene_checksums(tmp_path, rec)
+    sums = dataset.scene_checksums(tmp_path, rec)
     assert sums == {n: hashlib.sha256(bytes([i])).hexdigest() for i, n in enumerate(names)}
 
 
@@ -215,7 +216,7 @@ def test_manifest_round_trip(tmp_path, cfg):
     """write_manifest/read_manifest keep the schema and give one row per frame with right paths."""
     indices = [0, 1, 201]
     records = [
-        formats.scene_record(sample_scene(cfg, i).to_dict(), "png", legacy=False) for i in indices
+        layout.scene_record(sample_scene(cfg, i).to_dict(), "png", legacy=False) for i in indices
     ]
     path = tmp_path / "manifest.parquet"
     manifest.write_manifest(path, records, seed=cfg.seed, shares=cfg.split)
@@ -230,7 +231,7 @@ def test_manifest_round_trip(tmp_path, cfg):
     for row in rows:
         rec = records[indices.index(row["scene"])]
         f = row["frame"]
-        chunk = str(row["scene"] // 200)
+        chunk = str(row["scene"] // 200)  # the documented chunk size, not layout.CHUNK_SIZE
         assert row["chunk"] == chunk
         assert row["rgb"] == f"{chunk}/{rec['rgb'][f]}"
         assert row["depth"] == f"{chunk}/{rec['depth_exr'][f]}"

@@ -16,12 +16,11 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
-import pyarrow as pa
-import pyarrow.parquet as pq
+import cv2
 import pytest
 from conftest import assert_user_error, run_cli
 
-from stillbox_gen import formats, manifest
+from stillbox_gen import formats, layout, manifest
 
 TIMEOUT = 120  # seconds; far more than any command here needs unless it blocks on the FIFO
 
@@ -50,9 +49,9 @@ def _edit_json(path: Path, change: Callable[[dict], None]) -> None:
 
 def _edit_record(root: Path, index: int, change: Callable[[dict], None]) -> None:
     """Change scene ``index`` alike in its .records file and in metadata.json."""
-    _edit_json(formats.record_path(root, index), change)
-    meta = root / formats.chunk_name(index) / "metadata.json"
-    _edit_json(meta, lambda m: change(m["scenes"][formats.local_index(index)]))
+    _edit_json(layout.record_path(root, index), change)
+    meta = root / layout.chunk_name(index) / "metadata.json"
+    _edit_json(meta, lambda m: change(m["scenes"][layout.local_index(index)]))
 
 
 def _validate(root: Path, *args: str) -> tuple[int, list[str]]:
@@ -72,9 +71,9 @@ def test_records_hold_the_sha256_of_every_scene_file(default_dataset):
     """Each .records file and its metadata.json entry carry the SHA-256 of every scene file."""
     meta = json.loads((default_dataset / "0" / "metadata.json").read_text())
     for s in meta["scenes"]:
-        record = json.loads(formats.record_path(default_dataset, s["index"]).read_text())
+        record = json.loads(layout.record_path(default_dataset, s["index"]).read_text())
         assert record == s
-        names = formats.scene_files(s)
+        names = layout.scene_files(s)
         assert len(names) == 20 and sorted(s["sha256"]) == names
         for name in names:
             assert s["sha256"][name] == formats.file_sha256(default_dataset / "0" / name)
@@ -110,7 +109,7 @@ CORRUPTIONS = {
         ["0/depth_0001_03.exr: SHA-256 differs from the record of scene 1"],
     ),
     "deleted_record": (
-        lambda root: formats.record_path(root, 2).unlink(),
+        lambda root: layout.record_path(root, 2).unlink(),
         ["0/.records/0002.json: missing record of scene 2"],
     ),
     "stray_file_in_chunk": (
@@ -186,7 +185,7 @@ def _loader_attack(ds: Path, tmp_path: Path, how: str) -> tuple[int, Path]:
     ref = tmp_path / "ref"
     shutil.copytree(ds, ref)
     k = _scene_of_split(ds, "train")
-    outside = ref / "0" / formats.rgb_name(k, 0)
+    outside = ref / "0" / layout.rgb_name(k, 0)
     if how == "dotdot":
         name = f"../../../ref/0/{outside.name}"  # from ds/0: ds, a, tmp_path
         assert (ds / "0" / name).resolve() == outside.resolve()
@@ -209,9 +208,9 @@ def test_benchmark_loader_refuses_frames_outside_the_dataset(ds, tmp_path, monke
 
     k, outside = _loader_attack(ds, tmp_path, how)
     opened: list[str] = []
-    real_imread, real_depth = data.cv2.imread, data.read_depth_exr
-    monkeypatch.setattr(data.cv2, "imread", lambda p, *a: opened.append(p) or real_imread(p, *a))
-    monkeypatch.setattr(data, "read_depth_exr", lambda p: opened.append(p) or real_depth(p))
+    real_imread, real_depth = cv2.imread, formats.read_depth_exr
+    monkeypatch.setattr(cv2, "imread", lambda p, *a: opened.append(p) or real_imread(p, *a))
+    monkeypatch.setattr(formats, "read_depth_exr", lambda p: opened.append(p) or real_depth(p))
     with pytest.raises(data.DataError) as e:
         data.FrameStore(data.load_scenes(ds, "train"), progress=False)
     assert f"0/metadata.json: scene {k}: " in str(e.value)
@@ -219,11 +218,25 @@ def test_benchmark_loader_refuses_frames_outside_the_dataset(ds, tmp_path, monke
     assert opened == []
 
 
+def test_dataset_reader_refuses_frames_outside_the_dataset(ds, tmp_path):
+    """stillbox_gen.dataset.Dataset, the reader behind every command: DatasetError naming the
+    record when any scene asked for has a name leading outside; the other scenes still load."""
+    from stillbox_gen.dataset import Dataset
+    from stillbox_gen.formats import DatasetError
+
+    k, _ = _loader_attack(ds, tmp_path, "dotdot")
+    reader = Dataset(ds)
+    with pytest.raises(DatasetError, match=f"0/metadata.json: scene {k}: path '../"):
+        reader.scenes()
+    others = [i for i in reader.indices() if i != k]
+    assert [reader.scene(i).index for i in others] == others
+
+
 def test_bench_cli_refuses_a_symlink_leaving_the_dataset_in_one_line(ds, tmp_path):
     """stillbox-bench: exit 2, one line naming the scene, the outside FIFO never opened."""
     fifo = _outside_fifo(tmp_path)
     k = _scene_of_split(ds, "train")
-    for name in (formats.depth_name(k, 0), formats.rgb_name(k, 0)):
+    for name in (layout.depth_name(k, 0), layout.rgb_name(k, 0)):
         (ds / "0" / name).unlink()
         os.symlink(fifo, ds / "0" / name)
     cmd = [sys.executable, "-m", "benchmark.cli", "run", "constant", "--data", str(ds),
@@ -254,18 +267,11 @@ def test_validate_reports_names_leaving_the_dataset(ds, tmp_path):
     ), lines
 
 
-def _set_manifest_path(root: Path, row: int, key: str, value: str) -> None:
-    path = root / "manifest.parquet"
-    rows = manifest.read_manifest(path).to_pylist()
-    rows[row][key] = value
-    pq.write_table(pa.Table.from_pylist(rows, schema=manifest.MANIFEST_SCHEMA), path)
-
-
 @pytest.mark.parametrize("how", ["absolute", "symlink"])
 def test_preview_refuses_paths_leaving_the_dataset(ds, tmp_path, how):
     fifo = _outside_fifo(tmp_path)
     if how == "absolute":
-        _set_manifest_path(ds, 0, "rgb", str(fifo))
+        _edit_record(ds, 0, lambda s: s["rgb"].__setitem__(0, str(fifo)))
         words = f"absolute path '{fifo}'"
     else:
         (ds / "0" / "depth_0000_09.exr").unlink()
@@ -273,8 +279,7 @@ def test_preview_refuses_paths_leaving_the_dataset(ds, tmp_path, how):
         words = f"leads through a symlink to '{fifo}'"
     out = tmp_path / "sheet.png"
     proc = run_cli("preview", ds, "--out", out, check=False, timeout=TIMEOUT)
-    row = "frame 0 rgb" if how == "absolute" else "frame 9 depth"
-    assert_user_error(proc, f"manifest.parquet: scene 0 {row}: ", words)
+    assert_user_error(proc, "DATASET: ", "0/metadata.json: scene 0: ", words)
     assert not out.exists()
 
 
@@ -289,12 +294,12 @@ def test_stats_refuses_a_symlink_leaving_the_dataset(ds, tmp_path):
 
 def test_merge_does_not_write_outside_out_for_a_dotdot_record(ds, tmp_path):
     """A record naming '../../payload.txt' used to make merge write beside OUT."""
-    _edit_json(formats.record_path(ds, 1), lambda s: s["rgb"].__setitem__(0, "../../payload.txt"))
+    _edit_json(layout.record_path(ds, 1), lambda s: s["rgb"].__setitem__(0, "../../payload.txt"))
     (ds.parent / "payload.txt").write_text("payload")  # what ds/0/../../payload.txt names
     out = tmp_path / "o" / "out"
     out.parent.mkdir()
     proc = run_cli("merge", out, ds, check=False, timeout=TIMEOUT)
-    record = formats.record_path(ds, 1)
+    record = layout.record_path(ds, 1)
     assert_user_error(
         proc, f"SOURCES: {record}: scene 1: path '../../payload.txt' has '..' and leaves"
     )

@@ -1,0 +1,118 @@
+"""Where each file of a stillbox-gen dataset lives, and what a scene's record holds
+(docs/FORMAT.md). Pure functions: nothing here reads or writes a file.
+
+::
+
+    DIR/
+      dataset.json          DATASET_JSON: generator, parameters, counts; "complete" when done
+      manifest.parquet      MANIFEST: one row per frame
+      <chunk>/              chunk_name(k): scene k lives in chunk k // CHUNK_SIZE
+        metadata.json       METADATA_JSON: {"args": {...}, "scenes": [record, ...]}
+        RGB_<s>_<f>.png     rgb_name(s, f): frame f of scene s = local_index(k)
+        depth_<s>_<f>.exr   depth_name(s, f)
+        .records/<s>.json   record_name(k): the scene's record, written last (complete mark)
+        .tmp-<s>/           scene_tmp_name(k): a scene being rendered
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+CHUNK_SIZE = 200  # scenes per chunk folder (the original StillBox layout)
+DATASET_JSON = "dataset.json"
+MANIFEST = "manifest.parquet"
+METADATA_JSON = "metadata.json"
+RECORDS_DIR = ".records"
+STATS_FILES = ("stats.json", "stats.png")  # what ``stillbox-gen stats`` may add to the root
+
+
+def chunk_name(index: int) -> str:
+    """Folder name of the chunk holding scene ``index`` (global index, from 0)."""
+    return str(index // CHUNK_SIZE)
+
+
+def local_index(index: int) -> int:
+    """Index of scene ``index`` inside its chunk (the ``<s>`` of its file names)."""
+    return index % CHUNK_SIZE
+
+
+def chunk_count(scenes: int) -> int:
+    """Number of chunk folders of a dataset of ``scenes`` scenes."""
+    return -(-scenes // CHUNK_SIZE)
+
+
+def chunk_scenes(chunk: int, scenes: int) -> range:
+    """Global indices of the scenes of chunk number ``chunk`` in a dataset of ``scenes`` scenes."""
+    return range(chunk * CHUNK_SIZE, min(scenes, (chunk + 1) * CHUNK_SIZE))
+
+
+def rgb_name(local: int, frame: int, ext: str = "png") -> str:
+    """``RGB_<s>_<f>.<ext>``: frame ``frame`` of the scene with local index ``local``."""
+    return f"RGB_{local:04d}_{frame:02d}.{ext}"
+
+
+def depth_name(local: int, frame: int, ext: str = "exr") -> str:
+    """``depth_<s>_<f>.<ext>``: the depth of that frame (``npy`` for --legacy copies)."""
+    return f"depth_{local:04d}_{frame:02d}.{ext}"
+
+
+def record_name(index: int) -> str:
+    """``<chunk>/.records/<s>.json``, relative to the dataset root."""
+    return f"{chunk_name(index)}/{RECORDS_DIR}/{local_index(index):04d}.json"
+
+
+def record_path(root: Path, index: int) -> Path:
+    """The record file of scene ``index`` under ``root`` (its presence: the scene is complete)."""
+    return Path(root) / record_name(index)
+
+
+def scene_tmp_name(index: int) -> str:
+    """``<chunk>/.tmp-<s>``: the folder a scene is rendered into before it is committed."""
+    return f"{chunk_name(index)}/.tmp-{local_index(index):04d}"
+
+
+def scene_files(record: dict) -> list[str]:
+    """Every file name of a scene in its chunk folder (frames, depth, legacy copies), sorted."""
+    names = [*record["rgb"], *record["depth_exr"], *record["imgs"], *record["depth"]]
+    return sorted(set(names))
+
+
+def scene_record(spec: dict, image_format: str, legacy: bool) -> dict:
+    """The metadata.json entry of one scene, built from its SceneSpec dict.
+
+    Original StillBox keys first (imgs, depth, speed, time_step, length, orientation), then ours;
+    ``sha256`` ({file name: digest}) is added last, once the files are written.
+    """
+    cam = spec["camera"]
+    local, n = local_index(spec["index"]), len(cam["cam2world"])
+    rgb = [rgb_name(local, f, image_format) for f in range(n)]
+    exr = [depth_name(local, f) for f in range(n)]
+    c2w = [np.array(m) for m in cam["cam2world"]]
+    w2c = [np.linalg.inv(m) for m in c2w]
+    displacement = float(np.linalg.norm(cam["speed"]) * cam["time_step"])
+    return {
+        "imgs": [rgb_name(local, f, "jpg") for f in range(n)] if legacy else rgb,
+        "depth": [depth_name(local, f, "npy") for f in range(n)] if legacy else exr,
+        "speed": cam["speed"],
+        "time_step": cam["time_step"],
+        "length": n,
+        "orientation": cam["orientation"],
+        "index": spec["index"],
+        "scene_in_chunk": local,
+        "seed": spec["seed"],
+        "rejected": spec["rejected"],
+        "rgb": rgb,
+        "depth_exr": exr,
+        "resolution": [cam["width"], cam["height"]],
+        "K": cam["K"],
+        "displacement": displacement,
+        "cam2world": cam["cam2world"],
+        "world2cam": [m.tolist() for m in w2c],
+        "near_clip": cam["near_clip"],
+        "far_clip": cam["far_clip"],
+        "primitives": spec["primitives"],
+        "box": spec["box"],
+        "light": spec["light"],
+    }
