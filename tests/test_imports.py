@@ -1,0 +1,158 @@
+"""The module structure: no import cycles among the project's modules, and bpy only under
+stillbox_gen/blender/. Read from the source (every import statement, function-level ones
+included; imports under ``if TYPE_CHECKING:`` are annotations only and are left out)."""
+
+from __future__ import annotations
+
+import ast
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGES = ("stillbox_gen", "benchmark")
+BLENDER_ONLY = ("bpy", "mathutils")  # modules that exist inside Blender's Python only
+
+
+def _modules() -> dict[str, Path]:
+    """{dotted module name: file} of every module of the project's packages."""
+    found = {}
+    for package in PACKAGES:
+        for path in sorted((ROOT / package).rglob("*.py")):
+            parts = path.relative_to(ROOT).with_suffix("").parts
+            name = ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+            found[name] = path
+    return found
+
+
+def _is_type_checking(node: ast.If) -> bool:
+    test = node.test
+    return (isinstance(test, ast.Name) and test.id == "TYPE_CHECKING") or (
+        isinstance(test, ast.Attribute) and test.attr == "TYPE_CHECKING"
+    )
+
+
+def _import_nodes(tree: ast.AST):
+    """Import statements anywhere in ``tree`` but under ``if TYPE_CHECKING:``."""
+    for node in ast.iter_child_nodes(tree):
+        if isinstance(node, ast.If) and _is_type_checking(node):
+            yield from (n for child in node.orelse for n in _import_nodes_of(child))
+            continue
+        yield from _import_nodes_of(node)
+
+
+def _import_nodes_of(node: ast.AST):
+    if isinstance(node, (ast.Import, ast.ImportFrom)):
+        yield node
+    yield from _import_nodes(node)
+
+
+def imported_names(name: str, path: Path) -> set[str]:
+    """Dotted names module ``name`` imports: ``import a.b`` gives a.b; ``from .m import x``
+    gives <package>.m and <package>.m.x (x may be a submodule)."""
+    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    names = set()
+    for node in _import_nodes(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            names.update(alias.name for alias in node.names)
+            continue
+        base = node.module or ""
+        if node.level:
+            anchor = package.split(".")[: len(package.split(".")) - node.level + 1]
+            base = ".".join([*anchor, *([base] if base else [])])
+        names.add(base)
+        names.update(f"{base}.{alias.name}" for alias in node.names)
+    return names
+
+
+def import_graph() -> dict[str, set[str]]:
+    """{module: project modules it imports}."""
+    modules = _modules()
+    return {
+        name: {m for m in imported_names(name, path) if m in modules and m != name}
+        for name, path in modules.items()
+    }
+
+
+def find_cycle(graph: dict[str, set[str]]) -> list[str] | None:
+    """One cycle of ``graph`` as [a, b, ..., a], or None when it is acyclic."""
+    state: dict[str, int] = {}  # 1: on the current path, 2: done
+    path: list[str] = []
+
+    def visit(node: str) -> list[str] | None:
+        state[node] = 1
+        path.append(node)
+        for nxt in sorted(graph.get(node, ())):
+            if state.get(nxt) == 1:
+                return [*path[path.index(nxt) :], nxt]
+            if nxt not in state and (cycle := visit(nxt)):
+                return cycle
+        path.pop()
+        state[node] = 2
+        return None
+
+    for node in sorted(graph):
+        if node not in state and (cycle := visit(node)):
+            return cycle
+    return None
+
+
+def test_cycle_finder_finds_cycles():
+    assert find_cycle({"a": {"b"}, "b": {"c"}, "c": set()}) is None
+    assert find_cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}}) == ["a", "b", "c", "a"]
+
+
+def test_relative_imports_resolve_to_modules(tmp_path):
+    """``from . import x``, ``from .m import y`` and ``from .. import z`` (inside a function too)
+    name the modules they load."""
+    src = tmp_path / "m.py"
+    src.write_text(
+        "from . import formats\nfrom .layout import CHUNK_SIZE\n"
+        "def f():\n    from .. import config\n"
+        "from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from .generate import X\n"
+    )
+    names = imported_names("stillbox_gen.blender.m", src)
+    assert names >= {"stillbox_gen.blender.formats", "stillbox_gen.blender.layout"}
+    assert names >= {"stillbox_gen.config", "typing"}
+    assert not any("generate" in n for n in names)
+
+
+def test_the_graph_sees_the_known_edges():
+    """A sanity check of the walk itself: edges that must be there."""
+    graph = import_graph()
+    assert "stillbox_gen.dataset" in graph["stillbox_gen.generate"]
+    assert "stillbox_gen.workers" in graph["stillbox_gen.ray_pool"]
+    assert "stillbox_gen.blender.render" in graph["stillbox_gen.workers"]  # in a function
+    assert "stillbox_gen.dataset" in graph["benchmark.data"]
+    assert "benchmark.models" in graph["benchmark.cli"]
+
+
+def test_no_import_cycles():
+    """Every module can be read, and imported, without the ones that import it."""
+    cycle = find_cycle(import_graph())
+    assert cycle is None, "import cycle: " + " -> ".join(cycle or [])
+
+
+def test_only_the_blender_package_imports_bpy():
+    offenders = []
+    for name, path in _modules().items():
+        if name.startswith("stillbox_gen.blender"):
+            continue
+        for imported in imported_names(name, path):
+            if imported.split(".")[0] in BLENDER_ONLY:
+                offenders.append(f"{name} imports {imported}")
+    assert not offenders, offenders
+
+
+def test_importing_every_other_module_loads_no_bpy():
+    """The same at run time: importing all but stillbox_gen.blender leaves bpy unloaded."""
+    names = [n for n in _modules() if not n.startswith("stillbox_gen.blender")]
+    code = (
+        f"import importlib, sys\nfor n in {names!r}:\n    importlib.import_module(n)\n"
+        f"print(sorted(m for m in sys.modules if m.split('.')[0] in {BLENDER_ONLY!r}))"
+    )
+    proc = subprocess.run(
+        [sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=300
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip() == "[]"
