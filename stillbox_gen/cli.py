@@ -121,7 +121,7 @@ DEFAULT_SCENES = 100  # --scenes
 @click.option(
     "--workers",
     type=int,
-    default=2,  # TODO(issue 13): _run_default("workers") once RunOptions.workers is 2
+    default=_run_default("workers"),
     show_default=True,
     help="Blender worker processes.",
 )

@@ -204,6 +204,7 @@ def test_generate_help_shows_the_dataclass_defaults():
         f"default {render.samples},",
         f"RGB file format. [default: {render.image_format}]",
         f"[default: {','.join(f'{s:g}' for s in config.DatasetConfig.split)}]",
+        f"Blender worker processes. [default: {run['workers']}]",
         f"--threads INTEGER Cycles threads per worker (0 = all cores). [default: {run['threads']}]",
         f"[default: {run['scene_timeout']}]",
     ]:
