@@ -17,7 +17,7 @@ import click
 
 from . import config
 from .config import ConfigError
-from .dataset import NOMINAL_SHIFT, default_root
+from .dataset import MAX_DEPTH, NOMINAL_SHIFT, default_root
 from .formats import DatasetError
 
 if TYPE_CHECKING:
@@ -413,7 +413,7 @@ def validate(dataset: Path, quick: bool) -> None:
 @click.option(
     "--max-depth",
     type=float,
-    default=100.0,
+    default=MAX_DEPTH,
     show_default=True,
     help="Top of the depth colour scale, metres.",
 )
@@ -463,7 +463,7 @@ def preview(dataset: Path, out: Path, scenes: int, max_depth: float) -> None:
 @click.option(
     "--max-depth",
     type=float,
-    default=100.0,
+    default=MAX_DEPTH,
     show_default=True,
     help="Top of the depth histogram in stats.json / stats.png, metres.",
 )
@@ -493,7 +493,13 @@ def stats(dataset: Path, scenes: int, shift: int, flicker: int, out, max_depth: 
     show_default=True,
     help="Render configurations: quality levels and 'plain' (8 samples, 1 bounce, no denoiser).",
 )
-@click.option("--workers", type=int, default=2, show_default=True, help="Blender worker processes.")
+@click.option(
+    "--workers",
+    type=int,
+    default=_run_default("workers"),
+    show_default=True,
+    help="Blender worker processes.",
+)
 @click.option(
     "--psnr-scenes",
     type=int,

@@ -121,7 +121,7 @@ class SceneSpec:
         )
 
 
-def _rounded(x) -> list:
+def _plain_floats(x) -> list:
     """Plain floats for JSON (float64 round-trips exactly through json)."""
     return np.asarray(x, dtype=float).tolist()
 
@@ -166,12 +166,12 @@ def sample_material(
         roughness=roughness,
         metallic=1.0 if mirror else 0.0,
         scale=_log_uniform(rng, *(photo_scale_range if use_image else scale_range)),
-        offset=_rounded(rng.uniform(-100, 100, size=3)),
-        rotation=_rounded(rng.uniform(0, 2 * math.pi, size=3)),
+        offset=_plain_floats(rng.uniform(-100, 100, size=3)),
+        rotation=_plain_floats(rng.uniform(0, 2 * math.pi, size=3)),
     )
     if use_image:
         image = files[int(rng.integers(len(files)))]
-        tint = [1.0, 1.0, 1.0] if mirror else _rounded(rng.uniform(0.7, 1.0, size=3))
+        tint = [1.0, 1.0, 1.0] if mirror else _plain_floats(rng.uniform(0.7, 1.0, size=3))
         return MaterialSpec(
             "image", None, colors=[tint], positions=[], detail=0.0, image=image, **common
         )
@@ -187,7 +187,7 @@ def sample_material(
         _colour(rng, rng.uniform(0.02, 0.35) if i % 2 else rng.uniform(0.5, 1.0)) for i in range(n)
     ]
     # stops spread over [0.25, 0.75], where most pattern values fall
-    positions = _rounded(0.25 + 0.5 * (np.arange(n) + rng.uniform(0.2, 0.8, size=n)) / n)
+    positions = _plain_floats(0.25 + 0.5 * (np.arange(n) + rng.uniform(0.2, 0.8, size=n)) / n)
     return MaterialSpec(
         "procedural",
         pattern,
@@ -204,9 +204,9 @@ def primitive_dimensions(rng: np.random.Generator, kind: str, size: float) -> li
     a = rng.uniform(0.5, 1.0)
     if kind == "cube":
         d = rng.uniform(0.5, 1.0, size=3)
-        return _rounded(size * d / d.max())
+        return _plain_floats(size * d / d.max())
     if kind == "slab":
-        return _rounded([size, size * a, size * rng.uniform(0.03, 0.1)])
+        return _plain_floats([size, size * a, size * rng.uniform(0.03, 0.1)])
     if kind == "sphere":
         return [size] * 3
     if kind in ("cylinder", "cone"):
@@ -245,15 +245,15 @@ def sample_camera(rng: np.random.Generator, cfg: DatasetConfig) -> CameraSpec:
             if i == 0:  # the first frame defines the reference axes
                 noise[:] = 0.0
             rel = camera.rotation_vector_to_matrix(spin) @ camera.rotation_vector_to_matrix(noise)
-            quats.append(_rounded(camera.matrix_to_quat(rel)))
+            quats.append(_plain_floats(camera.matrix_to_quat(rel)))
         position = r0 @ (direction * c.displacement * i)
-        poses.append(_rounded(camera.pose_matrix(r0 @ rel, position)))
+        poses.append(_plain_floats(camera.pose_matrix(r0 @ rel, position)))
     return CameraSpec(
         width=c.width,
         height=c.height,
-        K=_rounded(c.K()),
+        K=_plain_floats(c.K()),
         time_step=c.time_step,
-        speed=_rounded(speed),
+        speed=_plain_floats(speed),
         orientation=quats,
         cam2world=poses,
         near_clip=cfg.render.near_clip,
@@ -280,7 +280,7 @@ def sample_primitive(
     location = pose0[:3, :3] @ (ray * distance) + pose0[:3, 3]
     rotation = camera.matrix_to_quat(camera.random_rotation(rng))
     material = sample_material(rng, cfg.materials, OBJECT_TEXTURE_SCALE, OBJECT_PHOTO_SCALE)
-    return PrimitiveSpec(kind, dims, _rounded(location), _rounded(rotation), material)
+    return PrimitiveSpec(kind, dims, _plain_floats(location), _plain_floats(rotation), material)
 
 
 def path_hits(prim: PrimitiveSpec, cam: CameraSpec, clearance: float) -> bool:
@@ -305,9 +305,9 @@ def sample_light(rng: np.random.Generator, cfg: DatasetConfig) -> LightSpec:
         math.cos(elevation) * math.sin(azimuth),
         math.sin(elevation),
     ]
-    jitter = lambda: _rounded(1.0 - rng.uniform(0, lc.colour_jitter, size=3))  # noqa: E731
+    jitter = lambda: _plain_floats(1.0 - rng.uniform(0, lc.colour_jitter, size=3))  # noqa: E731
     return LightSpec(
-        sun_direction=_rounded(-np.array(to_sun)),
+        sun_direction=_plain_floats(-np.array(to_sun)),
         sun_strength=_uniform(rng, lc.sun_strength_range),
         sun_color=jitter(),
         ambient_color=jitter(),
@@ -318,8 +318,8 @@ def sample_light(rng: np.random.Generator, cfg: DatasetConfig) -> LightSpec:
 def sample_box(rng: np.random.Generator, cfg: DatasetConfig) -> BoxSpec:
     b = cfg.box
     return BoxSpec(
-        center=_rounded(rng.uniform(-b.offset_max, b.offset_max, size=3)),
-        half_extents=_rounded(rng.uniform(*b.half_extent_range, size=3)),
+        center=_plain_floats(rng.uniform(-b.offset_max, b.offset_max, size=3)),
+        half_extents=_plain_floats(rng.uniform(*b.half_extent_range, size=3)),
         material=sample_material(
             rng,
             cfg.materials,

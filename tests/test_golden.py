@@ -24,7 +24,7 @@ import torch
 from conftest import run_cli
 
 from benchmark import metrics
-from stillbox_gen import formats
+from stillbox_gen import bench, formats
 
 GOLDEN = Path(__file__).parent / "golden"
 UPDATE = os.environ.get("STILLBOX_UPDATE_GOLDEN") == "1"
@@ -120,8 +120,7 @@ def test_frames_and_depth_match_golden(golden_dataset):
             ref_depth = formats.read_depth_exr(GOLDEN / "frames" / depth_name)
             if ref_rgb is None:
                 pytest.fail(f"golden frame {rgb_name} is missing; run `make golden`")
-            mse = np.mean((rgb.astype(float) - ref_rgb.astype(float)) ** 2)
-            psnr = math.inf if mse == 0 else 10 * math.log10(255**2 / mse)
+            psnr = bench.psnr(rgb, ref_rgb)
             if psnr < MIN_PSNR_DB:
                 problems.append(f"scene {k} frame {f} RGB: PSNR {psnr:.1f} dB < {MIN_PSNR_DB} dB")
             rel = np.abs(depth - ref_depth) / np.maximum(ref_depth, 1e-6)
