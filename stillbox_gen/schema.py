@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from .layout import CHUNK_SIZE
+
 _num = {"type": "number"}
 _vec3 = {"type": "array", "items": _num, "minItems": 3, "maxItems": 3}
 _quat = {"type": "array", "items": _num, "minItems": 4, "maxItems": 4}
@@ -122,7 +124,7 @@ METADATA = {
                 "fov": {"type": "number", "exclusiveMinimum": 0, "exclusiveMaximum": 180}
             },
         },
-        "scenes": {"type": "array", "items": SCENE_RECORD, "minItems": 1, "maxItems": 200},
+        "scenes": {"type": "array", "items": SCENE_RECORD, "minItems": 1, "maxItems": CHUNK_SIZE},
     },
 }
 
