@@ -65,6 +65,11 @@ def upconv(c_in: int, c_out: int, bias: bool = False) -> nn.ConvTranspose2d:
     return nn.ConvTranspose2d(c_in, c_out, 4, 2, 1, bias=bias)
 
 
+def depth_activation(raw: torch.Tensor) -> torch.Tensor:
+    """Raw prediction → depth (m) > 0: 1 + ELU, i.e. 1 + x for x > 0 and e^x otherwise."""
+    return F.elu(raw) + 1.0
+
+
 class EncoderDecoder(nn.Module):
     """The shared network; subclasses give the blocks, the head name, init and activation.
 
@@ -96,6 +101,21 @@ class EncoderDecoder(nn.Module):
 
     def activate(self, raw: torch.Tensor) -> torch.Tensor:
         raise NotImplementedError
+
+    def init_weight(self, name: str, conv: nn.Conv2d | nn.ConvTranspose2d) -> None:
+        raise NotImplementedError
+
+    def reset_parameters(self) -> None:
+        """Conv and transposed-conv weights by :meth:`init_weight`, biases 0; BatchNorm weight 1,
+        bias 0 (module order, so the seeded initialisation is the public code's)."""
+        for name, m in self.named_modules():
+            if isinstance(m, nn.Conv2d | nn.ConvTranspose2d):
+                self.init_weight(name, m)
+                if m.bias is not None:
+                    nn.init.zeros_(m.bias)
+            elif isinstance(m, nn.BatchNorm2d):
+                nn.init.ones_(m.weight)
+                nn.init.zeros_(m.bias)
 
     def build(self, encoder: tuple, kernels: tuple, decoder: tuple, out_channels: int) -> None:
         """Register the layers, in the public code's order.
@@ -176,24 +196,16 @@ class DepthNet(EncoderDecoder):
         tail = conv_bn(c_out, c_out, 3, 1, self.batch_norm, nn.ReLU(inplace=True))
         return nn.Sequential(upconv(c_in, c_out, bias=True), *tail)
 
-    def reset_parameters(self) -> None:
-        """Initialise as the public code: conv and transposed-conv weights ~ N(0, 2 / (k·k·C_out)),
-        i.e. He/kaiming normal over the fan-out counted with the layer's *output* channels (for a
-        transposed conv too, where torch's own ``mode="fan_out"`` would use its input channels);
-        biases 0; BatchNorm weight 1, bias 0."""
-        for m in self.modules():
-            if isinstance(m, nn.Conv2d | nn.ConvTranspose2d):
-                fan_out = m.kernel_size[0] * m.kernel_size[1] * m.out_channels
-                nn.init.normal_(m.weight, 0.0, math.sqrt(2.0 / fan_out))
-                if m.bias is not None:
-                    nn.init.zeros_(m.bias)
-            elif isinstance(m, nn.BatchNorm2d):
-                nn.init.ones_(m.weight)
-                nn.init.zeros_(m.bias)
+    def init_weight(self, name: str, conv: nn.Conv2d | nn.ConvTranspose2d) -> None:
+        """As the public code: N(0, 2 / (k·k·C_out)), i.e. He/kaiming normal over the fan-out
+        counted with the layer's *output* channels (for a transposed conv too, where torch's own
+        ``mode="fan_out"`` would use its input channels)."""
+        fan_out = conv.kernel_size[0] * conv.kernel_size[1] * conv.out_channels
+        nn.init.normal_(conv.weight, 0.0, math.sqrt(2.0 / fan_out))
 
     def activate(self, raw: torch.Tensor) -> torch.Tensor:
-        """Raw prediction → depth (m): 1 + ELU, i.e. 1 + x for x > 0 and e^x otherwise."""
-        depth = F.elu(raw) + 1.0
+        """Raw prediction → depth (m): 1 + ELU (:func:`depth_activation`)."""
+        depth = depth_activation(raw)
         return depth.clamp(*DEPTH_CLAMP_M) if self.clamp else depth
 
 
@@ -234,27 +246,19 @@ class FlowNetS(EncoderDecoder):
         """4×4 stride-2 transposed conv (no bias) → LeakyReLU(0.1)."""
         return nn.Sequential(upconv(c_in, c_out), nn.LeakyReLU(LEAKY_SLOPE, inplace=True))
 
-    def reset_parameters(self) -> None:
-        """As the public FlowNetS code: kaiming-normal (fan-in, LeakyReLU slope 0.1) conv and
-        transposed-conv weights, zero biases, BatchNorm weight 1 / bias 0. Except: the flow
-        head's ``predict_flow*`` convs start at zero, so an untrained network predicts zero flow
-        (with kaiming weights it predicts ~10-20 px of random flow, and the short CPU trainings
-        here ended worse than zero flow: EPE 9-11 px against 3.0 px)."""
-        for name, m in self.named_modules():
-            if isinstance(m, nn.Conv2d | nn.ConvTranspose2d):
-                if self.output == "flow" and name.startswith("predict_flow"):
-                    nn.init.zeros_(m.weight)
-                else:
-                    nn.init.kaiming_normal_(m.weight, LEAKY_SLOPE)
-                if m.bias is not None:
-                    nn.init.zeros_(m.bias)
-            elif isinstance(m, nn.BatchNorm2d):
-                nn.init.ones_(m.weight)
-                nn.init.zeros_(m.bias)
+    def init_weight(self, name: str, conv: nn.Conv2d | nn.ConvTranspose2d) -> None:
+        """As the public FlowNetS code: kaiming normal (fan-in, LeakyReLU slope 0.1). Except: the
+        flow head's ``predict_flow*`` convs start at zero, so an untrained network predicts zero
+        flow (with kaiming weights it predicts ~10-20 px of random flow, and the short CPU
+        trainings here ended worse than zero flow: EPE 9-11 px against 3.0 px)."""
+        if self.output == "flow" and name.startswith("predict_flow"):
+            nn.init.zeros_(conv.weight)
+        else:
+            nn.init.kaiming_normal_(conv.weight, LEAKY_SLOPE)
 
     def activate(self, raw: torch.Tensor) -> torch.Tensor:
         """Raw prediction → flow (pixels, × 20) or depth (metres, 1 + ELU)."""
-        return raw * FLOW_DIV if self.output == "flow" else F.elu(raw) + 1.0
+        return raw * FLOW_DIV if self.output == "flow" else depth_activation(raw)
 
 
 def count_parameters(model: nn.Module) -> int:
