@@ -13,12 +13,13 @@ from typing import TYPE_CHECKING
 
 import click
 
-from stillbox_gen.dataset import default_root
+from stillbox_gen.dataset import MAX_DEPTH, default_root
 
 from . import registry
 from . import speed as speed_table
 from .config import EVAL_BATCH_SIZE, default
 from .models import count_parameters
+from .multishift import EMA_LAMBDA
 from .registry import DEPTH_RECIPE
 from .runfolder import (
     COMPARISON,
@@ -126,6 +127,7 @@ def cli() -> None:
     stillbox-bench compare --data D --models depthnet,flownets-flow,oracle-flow,constant
     stillbox-bench report runs/*                             one comparison table + figure
     stillbox-bench speed                                     size and speed table
+    stillbox-bench infer --ckpt C --input flight.mp4 --speed 9 --out out/  depth of a video
     stillbox-bench list                                      registered models
     """
 
@@ -447,6 +449,110 @@ def speed(
     )
     click.echo(speed_table.markdown(rows))
     click.echo(f"written to {path}")
+
+
+def _size_option(value: str | None) -> tuple[int, int] | None:
+    """--res "WxH" or "N" -> (W, H) pixels (UserError naming --res)."""
+    if value is None:
+        return None
+    try:
+        parts = [int(v) for v in value.lower().split("x")]
+    except ValueError:
+        parts = []
+    if len(parts) not in (1, 2):
+        raise UserError(f"--res: expected WxH or N (pixels), got '{value}'")
+    return (parts[0], parts[-1])
+
+
+@cli.command()
+@click.option(
+    "--ckpt",
+    type=click.Path(path_type=Path),
+    required=True,
+    help="Checkpoint of a depth network written by 'run'.",
+)
+@click.option(
+    "--input",
+    "input_",
+    type=click.Path(path_type=Path),
+    required=True,
+    help="Video file, or folder of frames (png/jpg/bmp/tif, in name order).",
+)
+@click.option(
+    "--out",
+    type=click.Path(path_type=Path),
+    required=True,
+    help="Output folder (new or empty): depth/, depth_png/, preview.mp4, frames.csv, summary.json.",
+)
+@click.option("--speed", type=float, help="Constant camera speed, m/s (or --poses).")
+@click.option(
+    "--poses",
+    type=click.Path(path_type=Path),
+    help="CSV, one row per frame: x,y,z (m) or vx,vy,vz (m/s), optional t (s).",
+)
+@click.option("--fps", type=float, help="Frames per second.  [default: the video's]")
+@click.option("--fov", type=float, help="Horizontal field of view of the video, degrees.  "
+              "[default: the training camera's]")  # fmt: skip
+@click.option("--focal", type=float, help="Focal length of the video, pixels (instead of --fov).")
+@click.option("--res", help="Network input WxH, multiples of 64.  [default: the training size]")
+@click.option(
+    "--train-fov",
+    type=float,
+    help="Horizontal FOV (degrees) of the training camera, for checkpoints that record none; "
+    "needs --res.",
+)
+@_int_option("--shifts", 1, "Frame pairs per frame: depth clusters of thesis 6.3 (1..4).")
+@click.option("--fixed-shift", type=int, help="Always this frame shift (no adaptation).")
+@click.option(
+    "--max-shift",
+    type=int,
+    help="Largest frame shift considered.  [default: twice the shift reaching the nominal "
+    "displacement, at least 8]",
+)
+@click.option(
+    "--ema",
+    type=float,
+    default=EMA_LAMBDA,
+    show_default=True,
+    help="Smoothing λ of the target displacement (eq. 6.2), 0 <= λ < 1.",
+)
+@click.option(
+    "--depth-format",
+    type=click.Choice(["npy", "exr"]),
+    default="npy",
+    show_default=True,
+    help="Depth files: float32 .npy or single-channel .exr, metres.",
+)
+@click.option(
+    "--max-depth",
+    type=float,
+    default=MAX_DEPTH,
+    show_default=True,
+    help="Depth (m) at the end of the colour map of depth_png/ and preview.mp4.",
+)
+@DEVICE_OPTION
+@click.option("--quiet", is_flag=True, help="No progress bar.")
+def infer(input_: Path, res: str | None, **o) -> None:
+    """Depth maps of your own stabilised video with a depth network (thesis chapter 6).
+
+    The depth of frame t comes from pairs (frame t - shift, frame t), shifts chosen from the
+    depth of the previous frames (--shifts N: N pairs fused per frame); frame 0 gets none.
+    """
+    from .infer import InferOptions, describe, prepare
+    from .infer import run as run_inference
+
+    opts = InferOptions(input=input_, res=_size_option(res), **o)
+    try:
+        job = prepare(opts)
+    except ValueError as e:
+        raise UserError(str(e)) from None
+    if job.warning:
+        click.echo(f"stillbox-bench: warning: {job.warning}", err=True)
+    try:
+        summary = run_inference(job, opts)
+    except ValueError as e:
+        raise UserError(str(e)) from None
+    click.echo(describe(summary, opts.out))
 
 
 def main(argv: list[str] | None = None) -> None:
