@@ -176,7 +176,7 @@ def prepare(o: InferOptions) -> Job:
     source = video.FrameSource(o.input)
     positions, fps = _motion(o, source)
     size, crop, focals, warning = _geometry(o, info, source)
-    max_shift = o.max_shift or default_max_shift(positions, scale.d0)
+    max_shift = o.max_shift or max(default_max_shift(positions, scale.d0), o.fixed_shift or 1)
     return Job(
         source, model.to(device), scale, info, positions, fps, crop, size, max_shift, device,
         focals, warning,

@@ -20,6 +20,7 @@ import torch
 from conftest import invoke_main
 
 from benchmark import cli, registry
+from benchmark.checkpoint import depth_network
 from benchmark.video import (
     Crop,
     constant_speed_positions,
@@ -32,22 +33,22 @@ from benchmark.video import (
 FRAMES, SIZE, FPS = 8, 64, 10.0
 
 
-def _checkpoint(path: Path, name: str) -> Path:
-    """A checkpoint as Trainer.checkpoint writes it, of a freshly initialised registry network."""
+def _checkpoint(path: Path, name: str, **changes) -> Path:
+    """A checkpoint as Trainer.checkpoint writes it, of a freshly initialised registry network;
+    ``changes`` replace entries (None removes one)."""
     torch.manual_seed(0)
     model = registry.build_model(name)
-    torch.save(
-        {
-            "model": model.state_dict(),
-            "model_name": name,
-            "nominal_displacement": 0.3,
-            "shift": 3,
-            "config": {"data": str(path.parent / "no-dataset")},
-            "state": {"step": 0},
-            "camera": {"width": SIZE, "height": SIZE, "fov_deg": 90.0},
-        },
-        path,
-    )
+    ck = {
+        "model": model.state_dict(),
+        "model_name": name,
+        "nominal_displacement": 0.3,
+        "shift": 3,
+        "config": {"data": str(path.parent / "no-dataset")},
+        "state": {"step": 0},
+        "camera": {"width": SIZE, "height": SIZE, "fov_deg": 90.0},
+    }
+    ck.update(changes)
+    torch.save({k: v for k, v in ck.items() if v is not None}, path)
     return path
 
 
@@ -302,3 +303,41 @@ def test_motion_numbers(tmp_path):
     assert times.tolist() == [0, 1, 2]
     csv_path.write_text("vx,vy,vz\n0,0,0\n0,4,0\n0,4,0\n")  # no t: fps 2 -> y = 0, 1, 3
     assert read_poses(csv_path, 3, 2.0)[0][:, 1].tolist() == pytest.approx([0, 1, 3])
+
+
+def test_clamped_network_outputs_stay_in_its_range(files, tmp_path):
+    """A network trained on [10, 60] m: θ_max = 60 m, and at the nominal displacement (0.3 m per
+    frame, shift 1) every depth is its clamped output, inside [10, 60] m."""
+    ckpt = _checkpoint(tmp_path / "clamped.pt", "depthnet-tiny", depth_range=[10.0, 60.0])
+    _, scale, info = depth_network(ckpt)
+    assert (scale.theta_max, scale.d0, info["clamped"]) == (60.0, 0.3, True)
+    out = tmp_path / "out"
+    args = ("--input", files["folder"], "--fps", FPS, "--speed", 3, "--fixed-shift", 1)
+    proc = invoke_main(cli.main, "infer", "--ckpt", ckpt, "--out", out, "--quiet", *args)
+    assert proc.returncode == 0, proc.stderr
+    d = depths(out)
+    assert d.min() >= 10 - 1e-4 and d.max() <= 60 + 1e-4
+
+
+def test_training_camera_sources(files, tmp_path):
+    """No 'camera' in the checkpoint: its dataset's dataset.json (focal_px -> FOV); neither: a
+    one-line error naming --ckpt and --train-fov, and --train-fov with --res then works."""
+    data = tmp_path / "data"
+    data.mkdir()
+    camera = {"width": 128, "height": 64, "fov_deg": 90.0, "focal_px": 64 / math.tan(math.pi / 3)}
+    (data / "dataset.json").write_text(json.dumps({"config": {"camera": camera}}))
+    ckpt = _checkpoint(tmp_path / "a.pt", "depthnet-tiny", camera=None, config={"data": str(data)})
+    info = depth_network(ckpt)[2]
+    assert (info["width"], info["height"], info["clamped"]) == (128, 64, False)
+    assert info["fov_deg"] == pytest.approx(120.0)  # 2·atan(64 / f) with f = 64 / tan(60°)
+    lost = _checkpoint(tmp_path / "b.pt", "depthnet-tiny", camera=None)
+    out = tmp_path / "out"
+    args = ("--input", files["mp4"], "--speed", 3)
+    proc = invoke_main(cli.main, "infer", "--ckpt", lost, "--out", out, "--quiet", *args)
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2 and len(lines) == 1, proc.stderr
+    assert "--ckpt" in lines[0] and "--train-fov" in lines[0] and not out.exists()
+    args += ("--train-fov", 90, "--res", "64x64")
+    proc = invoke_main(cli.main, "infer", "--ckpt", lost, "--out", out, "--quiet", *args)
+    assert proc.returncode == 0, proc.stderr
+    assert json.loads((out / "summary.json").read_text())["camera"]["train_fov_deg"] == 90
