@@ -43,6 +43,7 @@ def configurations(names: list[str]) -> dict[str, dict]:
 class BenchRow:
     res: int
     config: str
+    device: str  # Cycles device (config.CPU_DEVICE or a GPU backend)
     shading: str
     samples: int
     denoise: bool
@@ -60,12 +61,18 @@ def psnr(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def reference_psnr(
-    cfg: config.DatasetConfig, root: Path, scenes: int, frames: list[int], workers: int
+    cfg: config.DatasetConfig,
+    root: Path,
+    scenes: int,
+    frames: list[int],
+    workers: int,
+    device: str = config.CPU_DEVICE,
 ) -> float:
-    """Mean PSNR of the dataset's frames against REFERENCE_SAMPLES-sample renders of them."""
+    """Mean PSNR of the dataset's frames against REFERENCE_SAMPLES-sample renders of them
+    (on the same Cycles ``device``)."""
     ref_render = {**cfg.to_dict()["render"], "samples": REFERENCE_SAMPLES, "denoise": False}
     c = cfg.camera
-    init = (ref_render, c.width, c.height, 0, cfg.materials.textures_dir)
+    init = (ref_render, c.width, c.height, 0, cfg.materials.textures_dir, device)
     values = []
     ds = Dataset(root)
     with tempfile.TemporaryDirectory() as tmp, process_pool(workers, init) as pool:
@@ -91,8 +98,10 @@ def run_bench(
     psnr_scenes: int,
     workdir: Path,
     log=print,
+    device: str = config.CPU_DEVICE,
 ) -> list[BenchRow]:
-    """Measure every (resolution, configuration); ``resolutions`` holds (pixels, scenes) pairs."""
+    """Measure every (resolution, configuration) on the Cycles ``device`` (workers.choose_device);
+    ``resolutions`` holds (pixels, scenes) pairs."""
     rows = []
     for res, scenes in resolutions:
         for name, render in configurations(names).items():
@@ -100,16 +109,19 @@ def run_bench(
             cfg = config.replace(cfg, camera={"width": res, "height": res}, render=render)
             out = workdir / f"{res}-{name}"
             formats.remove_tree(out)
-            opts = generate.RunOptions(out=out, scenes=scenes, workers=workers, progress=False)
+            opts = generate.RunOptions(
+                out=out, scenes=scenes, workers=workers, progress=False, device=device
+            )
             t0 = time.perf_counter()
             generate.generate(cfg, opts)
             seconds = time.perf_counter() - t0
             frames = [0, cfg.camera.frames - 1]
-            quality = reference_psnr(cfg, out, min(psnr_scenes, scenes), frames, workers)
+            quality = reference_psnr(cfg, out, min(psnr_scenes, scenes), frames, workers, device)
             r = cfg.render
             row = BenchRow(
                 res=res,
                 config=name,
+                device=device,
                 shading=r.shading,
                 samples=r.samples,
                 denoise=r.denoise,
@@ -130,12 +142,13 @@ def run_bench(
 
 def markdown_table(rows: list[BenchRow]) -> str:
     lines = [
-        "| px | config | shading | samples | denoiser | frames/s | vs plain | PSNR (dB) |",
-        "|---|---|---|---|---|---|---|---|",
+        "| px | config | device | shading | samples | denoiser | frames/s | vs plain | PSNR (dB) |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         lines.append(
-            f"| {r.res} | {r.config} | {r.shading} | {r.samples} | {'OIDN' if r.denoise else '-'} "
+            f"| {r.res} | {r.config} | {r.device} | {r.shading} | {r.samples} "
+            f"| {'OIDN' if r.denoise else '-'} "
             f"| {r.fps:.1f} | {'-' if r.speedup != r.speedup else f'{r.speedup:.2f}x'} "
             f"| {r.psnr_db:.1f} |"
         )

@@ -97,6 +97,15 @@ def _run_default(name: str) -> object:
 
 
 _CAM, _MATS, _RENDER = config.CameraConfig, config.MaterialsConfig, config.RenderConfig
+_DEVICE = click.option(
+    "--device",
+    type=click.Choice(config.DEVICES),
+    default="auto",
+    show_default=True,
+    help="Cycles render device: auto = the first of "
+    + ", ".join(b.lower() for b in config.GPU_BACKENDS)
+    + " with a device Cycles finds, else cpu. Changes no scene.",
+)
 _RES = f"{_CAM.width}" if _CAM.width == _CAM.height else f"{_CAM.width}x{_CAM.height}"
 DEFAULT_SCENES = 100  # --scenes
 
@@ -132,6 +141,7 @@ DEFAULT_SCENES = 100  # --scenes
     show_default=True,
     help="Cycles threads per worker (0 = all cores).",
 )
+@_DEVICE
 @click.option(
     "--preset",
     default=config.DatasetConfig.preset,
@@ -229,9 +239,12 @@ DEFAULT_SCENES = 100  # --scenes
 def generate(**o) -> None:
     """Render a dataset (resumes when --out holds an unfinished one with the same parameters)."""
     from .generate import generate as run
+    from .workers import choose_device
 
     cfg = build_config(o)
     opts = run_options(o, cfg)
+    device, device_line = choose_device(o["device"], opts.backend)  # before anything is written
+    opts = dataclasses.replace(opts, device=device)
     c, out, shard = cfg.camera, opts.out, opts.shard
     banner = (
         f"stillbox-gen: {o['scenes']} scenes of {c.frames} frames at {c.width}x{c.height} "
@@ -239,7 +252,7 @@ def generate(**o) -> None:
     )
     if shard != (0, 1):
         banner += f", shard {shard[0]}/{shard[1]}"
-    summary = run(cfg, opts, announce=lambda: click.echo(banner, err=True))
+    summary = run(cfg, opts, announce=lambda: click.echo(f"{banner}\n{device_line}", err=True))
     if summary.frames == 0:  # a shard that left scenes to others: nothing indexed yet
         click.echo(
             f"shard {shard[0]}/{shard[1]} done: {summary.rendered_now} scenes rendered in "
@@ -507,14 +520,18 @@ def stats(dataset: Path, scenes: int, shift: int, flicker: int, out, max_depth: 
     show_default=True,
     help="Scenes whose first and last frames are re-rendered with 256 samples for PSNR.",
 )
+@_DEVICE
 @click.option(
     "--csv", "csv_path", type=click.Path(path_type=Path), help="Also write the table here."
 )
-def bench(resolutions: str, configs: str, workers: int, psnr_scenes: int, csv_path) -> None:
+def bench(
+    resolutions: str, configs: str, workers: int, psnr_scenes: int, device: str, csv_path
+) -> None:
     """Measure frames/s (whole process) and PSNR per resolution and configuration."""
     import tempfile
 
     from . import bench as b
+    from .workers import choose_device
 
     pairs = []
     for item in resolutions.split(","):
@@ -529,9 +546,11 @@ def bench(resolutions: str, configs: str, workers: int, psnr_scenes: int, csv_pa
     b.configurations(names)  # fails early on unknown names
     if workers < 1 or psnr_scenes < 1:
         raise ConfigError("--workers and --psnr-scenes: must be at least 1")
+    device, device_line = choose_device(device)
     click.echo(f"environment: {generate_versions()}, {os.cpu_count()} CPUs", err=True)
+    click.echo(device_line, err=True)
     with tempfile.TemporaryDirectory(prefix="stillbox-bench-") as tmp:
-        rows = b.run_bench(pairs, names, workers, psnr_scenes, Path(tmp), log=click.echo)
+        rows = b.run_bench(pairs, names, workers, psnr_scenes, Path(tmp), click.echo, device)
     click.echo(b.markdown_table(rows))
     if csv_path:
         b.write_csv(rows, csv_path)

@@ -147,6 +147,14 @@ QUALITY = {
 }
 
 
+# --device: where Cycles renders. Not part of DatasetConfig: the device changes no scene (only,
+# perhaps, pixels by sampling noise). "auto" takes the first GPU backend of GPU_BACKENDS that
+# Cycles finds a device of, else the CPU. dataset.json's render.device records the backend used.
+CPU_DEVICE = "CPU"
+GPU_BACKENDS = ("OPTIX", "CUDA", "HIP", "ONEAPI", "METAL")  # Cycles' names, auto's preference
+DEVICES = ("auto", "cpu", *(b.lower() for b in GPU_BACKENDS))
+
+
 def denoise_quality(name: str, width: int, height: int) -> str:
     """The OpenImageDenoise mode used for ``render.denoise_quality`` at a frame size."""
     if name != "auto":

@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from . import config, formats, layout, manifest, photos
-from .config import ConfigError, DatasetConfig, denoise_quality
+from .config import CPU_DEVICE, ConfigError, DatasetConfig, denoise_quality
 from .formats import DatasetError
 
 #: Frames between the two images of a nominal StillBox pair (i, i + 3): the benchmark's fixed
@@ -68,8 +68,11 @@ def generator_name() -> str:
     return f"stillbox-gen {versions()['stillbox-gen']}"
 
 
-def dataset_info(cfg: DatasetConfig, scenes: int, complete: bool, **extra) -> dict:
-    """dataset.json: versions, parameters and render settings; ``extra`` keys come last."""
+def dataset_info(
+    cfg: DatasetConfig, scenes: int, complete: bool, device: str = CPU_DEVICE, **extra
+) -> dict:
+    """dataset.json: versions, parameters and render settings (``device``: the Cycles devices
+    that rendered it, see :func:`join_devices`); ``extra`` keys come last."""
     r, w, h = cfg.render, cfg.camera.width, cfg.camera.height
     return {
         "format_version": formats.FORMAT_VERSION,
@@ -83,7 +86,7 @@ def dataset_info(cfg: DatasetConfig, scenes: int, complete: bool, **extra) -> di
         "chunk_size": layout.CHUNK_SIZE,
         "render": {
             "engine": "CYCLES",
-            "device": "CPU",
+            "device": device,
             "shading": r.shading,
             "samples": r.samples,
             "denoiser": (
@@ -136,14 +139,23 @@ def chunk_args(cfg_dict: dict, generator: str) -> dict:
     }
 
 
+def join_devices(*values: str | None) -> str:
+    """dataset.json's ``render.device`` of a dataset rendered on several Cycles devices (e.g.
+    resumed with another --device, or merged): each once, in order, joined by " + "."""
+    names = [n for v in values if v for n in v.split(" + ")]
+    return " + ".join(dict.fromkeys(names)) or CPU_DEVICE
+
+
 # ---------------------------------------------------------------- lifecycle
 
 
-def prepare_output(out: Path, cfg: DatasetConfig, scenes: int) -> None:
-    """Check --out, mark the dataset incomplete; ConfigError (nothing written) on conflicts."""
+def prepare_output(out: Path, cfg: DatasetConfig, scenes: int, device: str = CPU_DEVICE) -> str:
+    """Check --out, mark the dataset incomplete; ConfigError (nothing written) on conflicts.
+    Returns its ``render.device``: ``device`` after those recorded there (join_devices)."""
     if out.exists() and not out.is_dir():
         raise ConfigError(f"--out: '{out}' exists and is a file, not a folder")
     existing = out / layout.DATASET_JSON
+    recorded = None  # the devices of earlier runs into it
     if existing.is_file():
         try:
             old = json.loads(existing.read_text())
@@ -159,9 +171,10 @@ def prepare_output(out: Path, cfg: DatasetConfig, scenes: int) -> None:
             raise ConfigError(
                 f"--scenes: {scenes} is fewer than the {old['scenes']} scenes already in '{out}'"
             )
+        recorded = old.get("render", {}).get("device")
     elif out.is_dir() and any(not _is_own_temporary(p) for p in out.iterdir()):
         if existing.is_file():  # another shard's dataset.json appeared meanwhile: check it
-            return prepare_output(out, cfg, scenes)
+            return prepare_output(out, cfg, scenes, device)
         raise ConfigError(
             f"--out: '{out}' is a non-empty folder that is not a stillbox-gen dataset"
         )
@@ -171,9 +184,11 @@ def prepare_output(out: Path, cfg: DatasetConfig, scenes: int) -> None:
         raise ConfigError(f"--out: cannot create '{out}' ({e.strerror})") from None
     if not os.access(out, os.W_OK):
         raise ConfigError(f"--out: '{out}' is not writable")
-    state = dataset_info(cfg, scenes, complete=False)
+    device = join_devices(recorded, device)
+    state = dataset_info(cfg, scenes, complete=False, device=device)
     formats.atomic_write_json(existing, state, indent=2)
     (out / layout.MANIFEST).unlink(missing_ok=True)
+    return device
 
 
 def _is_own_temporary(path: Path) -> bool:
@@ -219,9 +234,12 @@ class Totals:
     split_counts: dict
 
 
-def finalize(out: Path, cfg: DatasetConfig, scenes: int, run_info: dict) -> Totals:
+def finalize(
+    out: Path, cfg: DatasetConfig, scenes: int, run_info: dict, device: str = CPU_DEVICE
+) -> Totals:
     """Write every chunk's metadata.json, the manifest and a complete dataset.json (with
-    ``run_info`` as its ``run`` block) from the scenes' records."""
+    ``run_info`` as its ``run`` block and ``device`` as ``render.device``) from the scenes'
+    records."""
     records = [json.loads(layout.record_path(out, k).read_text()) for k in range(scenes)]
     args = chunk_args(cfg.to_dict(), generator_name())
     for start in range(0, scenes, layout.CHUNK_SIZE):
@@ -240,6 +258,7 @@ def finalize(out: Path, cfg: DatasetConfig, scenes: int, run_info: dict) -> Tota
         cfg,
         scenes,
         complete=True,
+        device=device,
         frames=totals.frames,
         rejected_scenes=totals.rejected,
         split_scenes=totals.split_counts,
@@ -269,7 +288,8 @@ def index_dataset(out: Path, run_info: dict | None = None) -> Totals:
             "run the missing shards first"
         )
     run_info = run_info or info.get("run", {"indexed_from": "shards"})
-    return finalize(out, cfg, info["scenes"], run_info)
+    device = join_devices(info.get("render", {}).get("device"))
+    return finalize(out, cfg, info["scenes"], run_info, device)
 
 
 # ---------------------------------------------------------------- the reader

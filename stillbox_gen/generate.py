@@ -20,7 +20,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from . import dataset, formats, layout
-from .config import DatasetConfig
+from .config import CPU_DEVICE, DatasetConfig
 from .scene import sample_scene
 from .workers import LocalPool
 
@@ -44,6 +44,9 @@ class RunOptions:
     retries: int = 2  # extra attempts per scene after a crash, hang or render error
     backend: str = "local"  # "local" (process pool) or "ray" (actors on a Ray cluster)
     ray_address: str | None = None  # Ray cluster to join; None starts a local instance
+    # Cycles device of local workers: CPU_DEVICE or a GPU backend (workers.choose_device gives
+    # it for --device); it changes no scene. Ray actors render on CPUs.
+    device: str = CPU_DEVICE
 
 
 @dataclass
@@ -87,7 +90,7 @@ def new_pool(cfg: DatasetConfig, opts: RunOptions):
         from .ray_pool import RayPool
 
         return RayPool(*args)
-    return LocalPool(*args)
+    return LocalPool(*args, opts.device)
 
 
 class _Scheduler:
@@ -249,7 +252,8 @@ def generate(cfg: DatasetConfig, opts: RunOptions, announce=lambda: None) -> Sum
     or later by :func:`dataset.index_dataset`. The result equals an unsharded run with the same
     seed.
     """
-    dataset.prepare_output(opts.out, cfg, opts.scenes)
+    device = CPU_DEVICE if opts.backend == "ray" else opts.device
+    devices = dataset.prepare_output(opts.out, cfg, opts.scenes, device)
     announce()
     todo = dataset.pending_indices(opts.out, opts.scenes, opts.shard)
     summary = Summary()
@@ -273,7 +277,7 @@ def generate(cfg: DatasetConfig, opts: RunOptions, announce=lambda: None) -> Sum
     }
     if dataset.pending_indices(opts.out, opts.scenes):  # other shards still have work
         return dataclasses.replace(summary, seconds=seconds, scenes=opts.scenes)
-    totals = dataset.finalize(opts.out, cfg, opts.scenes, run_info)
+    totals = dataset.finalize(opts.out, cfg, opts.scenes, run_info, devices)
     return dataclasses.replace(
         summary,
         scenes=totals.scenes,

@@ -19,7 +19,14 @@ from pathlib import Path
 
 from . import config, formats, layout
 from .config import ConfigError
-from .dataset import Dataset, Totals, index_dataset, pending_indices, prepare_output
+from .dataset import (
+    Dataset,
+    Totals,
+    index_dataset,
+    join_devices,
+    pending_indices,
+    prepare_output,
+)
 from .formats import DatasetError
 
 
@@ -65,7 +72,8 @@ def merge_datasets(out: Path, sources: list[Path]) -> tuple[int, Totals]:
                 f"'{sources[0]}' has {first.get('scenes')}"
             )
     # the same checks of OUT, and the same "incomplete" mark, as a generation run
-    prepare_output(out, config.from_dict(first["config"]), first["scenes"])
+    devices = join_devices(*(info.get("render", {}).get("device") for info in infos))
+    prepare_output(out, config.from_dict(first["config"]), first["scenes"], devices)
 
     copied = 0
     for k in pending_indices(out, first["scenes"]):

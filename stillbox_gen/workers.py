@@ -8,24 +8,39 @@ every backend (see also stillbox_gen.ray_pool.RayPool):
 - ``submit(spec, tmp_dir, image_format, legacy) -> Future`` of the render statistics;
 - ``died_errors``: exceptions meaning a worker died (its pool must be replaced);
 - ``kill()``: stop crashed or hung workers at once; ``shutdown()``: wait for them to end.
+
+:func:`choose_device` turns ``--device`` into the Cycles device the workers use, asking Blender
+(:func:`find_gpus`, in a subprocess) which GPU backends have a device.
 """
 
 from __future__ import annotations
 
+import functools
+import json
 import multiprocessing
+import subprocess
+import sys
 from concurrent.futures import Future, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 
-from .config import DatasetConfig
+from .config import CPU_DEVICE, GPU_BACKENDS, ConfigError, DatasetConfig
 
 
-def init_worker(render: dict, width: int, height: int, threads: int, textures: str | None):
+def init_worker(
+    render: dict,
+    width: int,
+    height: int,
+    threads: int,
+    textures: str | None,
+    device: str = CPU_DEVICE,
+):
     """Set Cycles up once in a worker process (``render``: RenderConfig as a dict; ``threads``
-    Cycles threads, 0 = all cores; ``textures``: the --textures folder or None)."""
+    Cycles threads, 0 = all cores; ``textures``: the --textures folder or None; ``device``:
+    CPU_DEVICE or a GPU backend, see :func:`choose_device`)."""
     from .blender.render import init_worker as init
 
-    init(render, width, height, threads, textures)
+    init(render, width, height, threads, textures, device)
 
 
 def render_scene(spec: dict, tmp_dir: str, image_format: str, legacy: bool) -> dict:
@@ -36,10 +51,57 @@ def render_scene(spec: dict, tmp_dir: str, image_format: str, legacy: bool) -> d
     return render(spec, tmp_dir, image_format, legacy)
 
 
-def worker_init_args(cfg: DatasetConfig, threads: int) -> tuple:
+def worker_init_args(cfg: DatasetConfig, threads: int, device: str = CPU_DEVICE) -> tuple:
     """Arguments of :func:`init_worker` for a dataset, with ``threads`` Cycles threads."""
     c, mat = cfg.camera, cfg.materials
-    return (cfg.to_dict()["render"], c.width, c.height, threads, mat.textures_dir)
+    return (cfg.to_dict()["render"], c.width, c.height, threads, mat.textures_dir, device)
+
+
+@functools.cache
+def find_gpus() -> dict[str, list[str]]:
+    """{backend: device names} of the GPU backends Cycles finds a device of on this machine
+    (GPU_BACKENDS order; empty on a CPU-only machine). Blender looks in a subprocess (about a
+    second, once per process), which also keeps its driver warnings off our stderr;
+    RuntimeError when that subprocess fails."""
+    cmd = [sys.executable, "-m", "stillbox_gen.blender.devices"]
+    try:
+        proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+        lines = proc.stdout.strip().splitlines()
+        if proc.returncode != 0 or not lines:
+            raise RuntimeError(f"exit code {proc.returncode}")
+        return json.loads(lines[-1])
+    except (OSError, subprocess.TimeoutExpired, ValueError) as e:
+        raise RuntimeError(str(e)) from None
+
+
+def choose_device(choice: str, backend: str = "local") -> tuple[str, str]:
+    """The Cycles device of ``--device CHOICE`` (config.DEVICES) and a one-line report of it,
+    e.g. ("CPU", "render device: CPU (no GPU backend found by Cycles)").
+
+    "auto": the first GPU backend of GPU_BACKENDS with a device, else the CPU. An explicit GPU
+    backend without a device is a ConfigError naming --device. Ray actors (``backend`` "ray")
+    render on CPUs: "auto" gives the CPU there without looking, a GPU backend is refused.
+    """
+    if choice == "cpu":
+        return CPU_DEVICE, f"render device: {CPU_DEVICE}"
+    if backend == "ray":
+        if choice == "auto":
+            return CPU_DEVICE, f"render device: {CPU_DEVICE} (--backend ray renders on CPUs)"
+        raise ConfigError(f"--device {choice}: --backend ray renders on CPUs (use cpu or auto)")
+    wanted = GPU_BACKENDS if choice == "auto" else (choice.upper(),)
+    try:
+        found, failed = find_gpus(), ""
+    except RuntimeError as e:
+        found, failed = {}, f"Cycles' device detection failed: {e}"
+    usable = [b for b in wanted if b in found]
+    if usable:
+        return usable[0], f"render device: {usable[0]} ({', '.join(found[usable[0]])})"
+    if choice == "auto":
+        return CPU_DEVICE, f"render device: CPU ({failed or 'no GPU backend found by Cycles'})"
+    seen = ", ".join(["CPU", *found]) if found else "CPU only"
+    raise ConfigError(
+        f"--device {choice}: no {wanted[0]} device found by Cycles ({failed or f'found: {seen}'})"
+    )
 
 
 def process_pool(workers: int, init_args: tuple, recycle_after: int | None = None):
@@ -60,8 +122,15 @@ class LocalPool:
 
     died_errors: tuple[type[BaseException], ...] = (BrokenProcessPool,)
 
-    def __init__(self, cfg: DatasetConfig, workers: int, threads: int, recycle_after: int):
-        self._pool = process_pool(workers, worker_init_args(cfg, threads), recycle_after)
+    def __init__(
+        self,
+        cfg: DatasetConfig,
+        workers: int,
+        threads: int,
+        recycle_after: int,
+        device: str = CPU_DEVICE,
+    ):
+        self._pool = process_pool(workers, worker_init_args(cfg, threads, device), recycle_after)
 
     def submit(self, spec: dict, tmp_dir: Path, image_format: str, legacy: bool) -> Future:
         return self._pool.submit(render_scene, spec, str(tmp_dir), image_format, legacy)

@@ -17,7 +17,7 @@ import cv2
 import numpy as np
 
 from .. import config, formats
-from . import build
+from . import build, devices
 
 _STATE: dict = {}
 
@@ -28,16 +28,18 @@ def init_worker(
     height: int,
     threads: int,
     textures_dir: str | None,
+    device: str = config.CPU_DEVICE,
     silence_stdout: bool = True,
 ) -> None:
-    """Configure Cycles once per process. ``render`` is RenderConfig as a dict."""
+    """Configure Cycles once per process. ``render`` is RenderConfig as a dict; ``device`` is
+    CPU_DEVICE or one of config.GPU_BACKENDS (RuntimeError when Cycles finds no such device)."""
     if silence_stdout:  # Blender prints a line per saved file on stdout
         os.dup2(os.open(os.devnull, os.O_WRONLY), 1)
     bpy.ops.wm.read_factory_settings(use_empty=True)
     scene = bpy.context.scene
     scene.render.engine = "CYCLES"
     cy = scene.cycles
-    cy.device = "CPU"
+    devices.use_device(device)
     cy.samples = render["samples"]
     cy.use_adaptive_sampling = False
     # Box filter one pixel wide: a pixel is the mean of its samples over its own area (no blur
