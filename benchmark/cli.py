@@ -20,7 +20,7 @@ from . import speed as speed_table
 from .config import EVAL_BATCH_SIZE, default
 from .models import count_parameters
 from .multishift import EMA_LAMBDA
-from .registry import DEPTH_RECIPE
+from .registry import CLAMPED_RECIPE, DEPTH_RECIPE
 from .runfolder import (
     COMPARISON,
     SUMMARY_JSON,
@@ -55,6 +55,19 @@ def _dataset_dir(data: Path) -> Path:
             f"--data: '{data}' is not a finished stillbox-gen dataset (no manifest.parquet)"
         )
     return data
+
+
+def _clamp_option(text: str | None) -> tuple[float, float] | None:
+    """--clamp "LO,HI" -> (LO, HI) metres with 0 <= LO < HI <= MAX_DEPTH (UserError otherwise)."""
+    if text is None:
+        return None
+    try:
+        lo, hi = (float(v) for v in text.split(","))
+    except ValueError:
+        raise UserError(f"--clamp: expected LO,HI in metres (e.g. 10,60), got '{text}'") from None
+    if not 0 <= lo < hi <= MAX_DEPTH:
+        raise UserError(f"--clamp: needs 0 <= LO < HI <= {MAX_DEPTH:g} m, got '{text}'")
+    return (lo, hi)
 
 
 def _device(name: str) -> torch.device:
@@ -135,13 +148,14 @@ def cli() -> None:
 @cli.command("list")
 def list_cmd() -> None:
     """Registered models with their parameter counts."""
+    width = max(map(len, registry.list_models()))
     for name in registry.list_models():
         spec = registry.MODELS[name]
         if spec.trainable:
             n = f"{count_parameters(spec.build()) / 1e6:7.2f} M parameters"
         else:
             n = f"{'no network':>20s}"
-        click.echo(f"{name:20s} {n}  {spec.description}")
+        click.echo(f"{name:{width}s} {n}  {spec.description}")
 
 
 @cli.command()
@@ -184,6 +198,20 @@ def list_cmd() -> None:
 )
 @_int_option("--ckpt-every", default("ckpt_every"), "Steps between mid-epoch checkpoints.")
 @_int_option("--log-every", default("log_every"), "Steps between steps.csv rows.")
+@click.option(
+    "--shift",
+    type=int,
+    help=f"Nominal frame shift of the training pairs.  [default: model's, {DEPTH_RECIPE.shift}; "
+    f"{CLAMPED_RECIPE.shift} for depthnet-clamped*]",
+)
+@click.option(
+    "--clamp",
+    metavar="LO,HI",
+    help="Clip depth targets to [LO, HI] m and clamp the outputs to it where the network is used "
+    f"(thesis 6.4's clamped DepthNet).  [default: model's, "
+    f"{','.join(f'{v:g}' for v in DEPTH_RECIPE.depth_range)}; "
+    f"{','.join(f'{v:g}' for v in CLAMPED_RECIPE.depth_range)} for depthnet-clamped*]",
+)
 @PREDICTIONS_OPTION
 @click.option("--quiet", is_flag=True, help="No progress bars.")
 def run(model: str, data: Path, out: Path | None, **o) -> None:
@@ -208,6 +236,9 @@ def run(model: str, data: Path, out: Path | None, **o) -> None:
     if not o["resume"] and checkpoint_path(out, "last").exists():
         raise UserError(f"--out: '{out}' already holds a run; add --resume or choose another --out")
     _training_options(o)
+    o["depth_range"] = _clamp_option(o.pop("clamp"))
+    if o["shift"] is not None and o["shift"] < 1:
+        raise UserError(f"--shift: must be at least 1, got {o['shift']}")
     if o["pretrained"] is not None and not o["pretrained"].is_file():
         raise UserError(f"--pretrained: no such file '{o['pretrained']}'")
     if not trainable and (o["pretrained"] or o["resume"]):
@@ -228,7 +259,8 @@ def _run_one(model: str, data: Path, out: Path, o: dict) -> dict | None:
     """runner.run_method with the command-line options; ValueError -> UserError."""
     from .runner import run_method
 
-    overrides = {k: o.get(k) for k in ("epochs", "max_steps", "batch_size", "lr")}
+    keys = ("epochs", "max_steps", "batch_size", "lr", "shift", "depth_range")
+    overrides = {k: o.get(k) for k in keys}
     overrides.update(  # options 'compare' lacks are None: TrainConfig's defaults
         device=o["device"],
         threads=o["threads"],

@@ -9,8 +9,6 @@ from __future__ import annotations
 
 from dataclasses import MISSING, dataclass, fields
 
-from stillbox_gen.dataset import NOMINAL_SHIFT
-
 from .registry import DEPTH_RECIPE
 
 _R = DEPTH_RECIPE
@@ -23,11 +21,12 @@ class TrainConfig:
     """Everything a training run depends on.
 
     ``model``: registry name; ``data``: dataset folder; ``out``: run folder. The recipe fields
-    (``epochs`` … ``loss_scale``) are those of :class:`benchmark.registry.Recipe`. ``shift``:
-    nominal frame shift of the pairs (frames); ``threads``: torch intra-op threads (0: torch's
-    default); ``ckpt_every``: optimiser steps between mid-epoch ``last.pt`` checkpoints (0: epoch
-    ends only); ``log_every``: steps between ``steps.csv`` rows; ``cache``: decoded frames in
-    memory (None: when they fit).
+    (``epochs`` … ``depth_range``) are those of :class:`benchmark.registry.Recipe` (``shift``:
+    nominal frame shift of the pairs; ``depth_range``: metres, targets clipped and outputs
+    clamped to it); ``threads``: torch intra-op threads (0: torch's default); ``ckpt_every``:
+    optimiser steps between mid-epoch ``last.pt`` checkpoints (0: epoch ends only);
+    ``log_every``: steps between ``steps.csv`` rows; ``cache``: decoded frames in memory (None:
+    when they fit).
     """
 
     model: str
@@ -46,7 +45,8 @@ class TrainConfig:
     gamma: float = _R.gamma
     loss_weights: tuple[float, ...] = _R.loss_weights
     loss_scale: float = _R.loss_scale
-    shift: int = NOMINAL_SHIFT
+    shift: int = _R.shift
+    depth_range: tuple[float, float] = _R.depth_range
     device: str = "auto"
     threads: int = 0
     seed: int = 0

@@ -2,7 +2,8 @@
 
 Training pairs follow the original DepthNet sampling (REFERENCE §3): frame i1 uniform, shift =
 round(2·nominal_shift·U) in {0..6}, i2 = min(last, i1 + shift), swapped with probability 0.5; the
-target is depth(i2) · nominal_shift / |i2 − i1| (100 m when i1 == i2), clipped to [0, 100] m;
+target is depth(i2) · nominal_shift / |i2 − i1| (100 m when i1 == i2), clipped to the depth range
+([0, 100] m; [10, 60] m for the clamped DepthNet of thesis 6.4);
 random horizontal and vertical flips. Evaluation pairs are fixed forward pairs (i, i + shift) with
 target depth(i + shift). Inputs are (x/255 − 0.5)/0.2 per channel, frames stacked to 6 channels.
 Flow networks train on the same pairs with an optical-flow target (``target="flow"``): the exact
@@ -25,6 +26,7 @@ from tqdm import tqdm
 os.environ.setdefault("OPENCV_IO_ENABLE_OPENEXR", "1")
 
 from stillbox_gen import layout  # noqa: E402
+from stillbox_gen.camera import fov_from_focal  # noqa: E402
 from stillbox_gen.dataset import MAX_DEPTH, NOMINAL_SHIFT, Dataset, Scene  # noqa: E402
 from stillbox_gen.formats import DatasetError, read_depth  # noqa: E402, F401 - runner uses it
 
@@ -51,6 +53,16 @@ def load_scenes(root: str | os.PathLike, split: str) -> list[Scene]:
                 "stabilised dataset (no --rotation-noise/--rotation-speed)"
             )
     return scenes
+
+
+def camera_of(root: str | os.PathLike) -> dict:
+    """The camera a dataset was rendered with: ``{"width", "height"}`` in pixels and
+    ``"fov_deg"``, the horizontal field of view in degrees (from dataset.json). A network
+    trained on it expects frames of that size and field of view."""
+    cam = Dataset(root).info["config"]["camera"]
+    focal = cam.get("focal_px")
+    fov = cam["fov_deg"] if focal is None else fov_from_focal(focal, cam["width"])
+    return {"width": int(cam["width"]), "height": int(cam["height"]), "fov_deg": float(fov)}
 
 
 class FrameStore:
@@ -103,10 +115,10 @@ class PairDataset(torch.utils.data.Dataset):
     ``mode='eval'``: every fixed forward pair (i, i + shift).
 
     Items are dicts: ``input`` (6, H, W) float32, ``target`` (H, W) float32 metres (depth of the
-    second frame, rescaled and clipped in train mode, raw in eval mode), ``translation`` (3,)
-    float32 metres (camera motion from first to second frame, camera axes, after flips), ``K``
-    (3, 3) (of the flipped images: a flip mirrors the principal point), ``scene``, ``frames``
-    (i1, i2), ``flips`` (horizontal, vertical).
+    second frame, rescaled and clipped to ``depth_range`` in train mode, raw in eval mode),
+    ``translation`` (3,) float32 metres (camera motion from first to second frame, camera axes,
+    after flips), ``K`` (3, 3) (of the flipped images: a flip mirrors the principal point),
+    ``scene``, ``frames`` (i1, i2), ``flips`` (horizontal, vertical).
 
     ``target="flow"`` (train mode only): ``target`` is instead the (2, H, W) float32 flow in
     pixels at the second frame's pixels towards the first frame (position in frame i1 minus
@@ -121,12 +133,13 @@ class PairDataset(torch.utils.data.Dataset):
         shift: int = NOMINAL_SHIFT,
         seed: int = 0,
         target: str = "depth",
+        depth_range: tuple[float, float] = (0.0, MAX_DEPTH),
     ):
         if mode not in ("train", "eval"):
             raise ValueError(mode)
         if target not in ("depth", "flow") or (target == "flow" and mode != "train"):
             raise ValueError(f"target {target!r} with mode {mode!r}")
-        self.target = target
+        self.target, self.depth_range = target, depth_range
         self.store, self.mode, self.shift, self.seed = store, mode, shift, seed
         self.epoch = 0
         self.items: list[tuple[int, int]] = []
@@ -163,7 +176,7 @@ class PairDataset(torch.utils.data.Dataset):
             else:
                 target = self.store.depth(k, i2) * (self.shift / abs(i2 - i1))
             if self.target == "depth":
-                target = np.clip(target, 0.0, MAX_DEPTH)
+                target = np.clip(target, *self.depth_range)
             flip_h, flip_v = rng.uniform() < 0.5, rng.uniform() < 0.5
         img1, img2 = self.store.rgb(k, i1), self.store.rgb(k, i2)
         translation = scene.translation(i1, i2)

@@ -35,7 +35,9 @@ class Method:
     ``model``: the network (depth and flow methods); ``nominal_displacement``: metres the depth
     network answers for (depth methods); ``constant``: metres (constant method);
     ``flow_noise``: standard deviation (pixels) of Gaussian noise added to the exact flow of
-    ``oracle-flow`` (seeded by scene and frames: the conditioning of the geometry near the FOE).
+    ``oracle-flow`` (seeded by scene and frames: the conditioning of the geometry near the FOE);
+    ``depth_range``: metres, a depth network's outputs are clamped to it before the displacement
+    scaling (its training range; None: not clamped).
     """
 
     output: str
@@ -43,6 +45,7 @@ class Method:
     nominal_displacement: float | None = None
     constant: float | None = None
     flow_noise: float = 0.0  # oracle-flow: Gaussian noise (px, per component) added to the flow
+    depth_range: tuple[float, float] | None = None
 
 
 def predict(method: Method, batch: dict, device: torch.device) -> dict[str, torch.Tensor]:
@@ -53,7 +56,10 @@ def predict(method: Method, batch: dict, device: torch.device) -> dict[str, torc
     out: dict[str, torch.Tensor] = {}
     if method.output == "depth":
         scale = batch["translation"].norm(dim=1).to(device) / method.nominal_displacement
-        out["depth_q"] = method.model(batch["input"].to(device))[0] * scale.view(-1, 1, 1, 1)
+        raw = method.model(batch["input"].to(device))[0]
+        if method.depth_range is not None:
+            raw = raw.clamp(*method.depth_range)
+        out["depth_q"] = raw * scale.view(-1, 1, 1, 1)
         out["depth"] = metrics.upsample_to(out["depth_q"], h, w)
         return out
     if method.output == "constant":

@@ -28,7 +28,6 @@ import torch.nn.functional as F
 from torch import nn
 
 BN_EPS = 1e-3
-DEPTH_CLAMP_M = (10.0, 60.0)  # range of DepthNet's optional output clamp, metres (public code)
 FLOW_DIV = 20.0  # FlowNetS works in flow / 20 (the public code's div_flow)
 LEAKY_SLOPE = 0.1  # FlowNetS's LeakyReLU
 
@@ -169,20 +168,20 @@ class DepthNet(EncoderDecoder):
             published network (10,290,473 parameters with batch norm), small values give
             cheap variants for tests. The 6 input and 1 output channels never change.
         batch_norm: BatchNorm2d(eps=1e-3) after every hidden conv (the published setting).
-        clamp: clamp every output to [10, 60] m after the activation, as the public code's
-            ``clamp`` option (off by default; it zeroes gradients outside that range).
 
     Outputs are depth in metres, > 0 by "1 + ELU" (computed as ``F.elu(x) + 1``, which in float32
     rounds to exactly 0 for raw values below about -17), in train and eval mode (the public code
-    returns only the finest map in eval mode and drops the channel axis).
+    returns only the finest map in eval mode and drops the channel axis). The clamped DepthNet of
+    thesis 6.4 is this network with a training recipe (benchmark.registry.CLAMPED_RECIPE): its
+    targets are clipped during training and its outputs clamped where it is used, not inside the
+    network, where a clamp would zero the gradients of every pixel outside the range.
     """
 
     head = "depth"
     predict_bias = True
 
-    def __init__(self, width: float = 1.0, batch_norm: bool = True, clamp: bool = False):
+    def __init__(self, width: float = 1.0, batch_norm: bool = True):
         super().__init__(width, batch_norm)
-        self.clamp = clamp
         encoder = self.scaled(32, 64, 128, 256, 256, 512)
         self.build(encoder, (3, 3, 3), self.scaled(256, 128, 64, 32), 1)
         self.reset_parameters()
@@ -205,8 +204,7 @@ class DepthNet(EncoderDecoder):
 
     def activate(self, raw: torch.Tensor) -> torch.Tensor:
         """Raw prediction → depth (m): 1 + ELU (:func:`depth_activation`)."""
-        depth = depth_activation(raw)
-        return depth.clamp(*DEPTH_CLAMP_M) if self.clamp else depth
+        return depth_activation(raw)
 
 
 class FlowNetS(EncoderDecoder):

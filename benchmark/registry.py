@@ -15,6 +15,8 @@ from dataclasses import dataclass, replace
 
 from torch import nn
 
+from stillbox_gen.dataset import MAX_DEPTH, NOMINAL_SHIFT
+
 from .models import FLOW_DIV, DepthNet, FlowNetS
 
 
@@ -25,7 +27,11 @@ class Recipe:
     ``milestones`` are fractions of the epoch count at which the learning rate is multiplied by
     ``gamma`` (epochs 19, 30, 44, 53 of 55); ``loss_weights`` weigh the outputs finest (1/4)
     to coarsest (1/64); the loss is multiplied by ``loss_scale``. ``momentum`` is SGD's momentum
-    or Adam's beta1; ``dampening`` is SGD's, ``beta2`` Adam's.
+    or Adam's beta1; ``dampening`` is SGD's, ``beta2`` Adam's. ``shift``: the nominal frame
+    shift of the training pairs (the network answers for ``shift`` × metres per frame);
+    ``depth_range``: metres, training targets are clipped to it and a depth network's outputs
+    are clamped to it when scored or used (DepthNet: [0, 100] m, the clamped DepthNet of
+    thesis 6.4: [10, 60] m).
     """
 
     epochs: int = 55
@@ -40,6 +46,8 @@ class Recipe:
     gamma: float = 0.3
     loss_weights: tuple[float, ...] = (0.32, 0.08, 0.02, 0.01, 0.005)
     loss_scale: float = 1.0
+    shift: int = NOMINAL_SHIFT
+    depth_range: tuple[float, float] = (0.0, MAX_DEPTH)
 
 
 #: DepthNet's recipe (SGD, lr 0.01, momentum and dampening 0.9, weight decay 4e-4, batch 256,
@@ -51,6 +59,11 @@ DEPTH_RECIPE = Recipe()
 #: here (64 px, 2 epochs: predictions uncorrelated with the truth, EPE 10.7 px against 3.0 px for
 #: zero flow).
 FLOW_RECIPE = replace(DEPTH_RECIPE, optimizer="adam", lr=1e-4, loss_scale=1.0 / FLOW_DIV)
+
+#: The clamped DepthNet of thesis 6.4: depth clamped to [10, 60] m, pairs 5 frames apart
+#: (instead of 3), so that the network focuses on mid-range depths; made for multi-shift inference.
+CLAMPED_RECIPE = replace(DEPTH_RECIPE, shift=5, depth_range=(10.0, 60.0))
+THIN_WIDTH = 0.5  # channel multiplier of the thin clamped DepthNet (thesis 6.4: half the maps)
 
 #: what a method outputs: a depth network, a flow network (depth by geometry), or no network
 OUTPUTS = ("depth", "flow", "oracle-flow", "constant")
@@ -90,6 +103,24 @@ def _specs() -> list[ModelSpec]:
             lambda: DepthNet(width=1.0),
         ),
         ModelSpec("depthnet-tiny", f"DepthNet {tiny}", lambda: DepthNet(width=TINY_WIDTH)),
+        ModelSpec(
+            "depthnet-clamped",
+            "DepthNet trained on depth clamped to [10, 60] m with shift 5 (thesis 6.4)",
+            lambda: DepthNet(width=1.0),
+            recipe=CLAMPED_RECIPE,
+        ),
+        ModelSpec(
+            "depthnet-clamped-thin",
+            "depthnet-clamped with half the feature maps (thesis 6.4's thin network)",
+            lambda: DepthNet(width=THIN_WIDTH),
+            recipe=CLAMPED_RECIPE,
+        ),
+        ModelSpec(
+            "depthnet-clamped-tiny",
+            f"depthnet-clamped {tiny}",
+            lambda: DepthNet(width=TINY_WIDTH),
+            recipe=CLAMPED_RECIPE,
+        ),
         ModelSpec(
             "flownets-depth",
             "FlowNetS (BN) with a 1-channel 1+ELU depth output, trained like DepthNet",
@@ -132,6 +163,14 @@ def _specs() -> list[ModelSpec]:
 
 
 MODELS: dict[str, ModelSpec] = {spec.name: spec for spec in _specs()}
+
+
+def output_clamp(depth_range) -> tuple[float, float] | None:
+    """The range a depth network's outputs are clamped to where it is used: its training
+    ``depth_range`` (metres) when narrower than DepthNet's [0, MAX_DEPTH] (a clamped DepthNet),
+    else None (outputs used as they are, as the original code does)."""
+    lo, hi = (float(v) for v in depth_range)
+    return None if (lo, hi) == (0.0, MAX_DEPTH) else (lo, hi)
 
 
 def list_models() -> list[str]:

@@ -87,7 +87,11 @@ def score_checkpoint(
     model.to(dev)
     shift = ck.get("shift", NOMINAL_SHIFT)
     split, scenes, dataset = eval_split(data, split, shift, progress)
-    method = Method(registry.MODELS[name].output, model, ck["nominal_displacement"])
+    depth_range = ck.get("depth_range", [0.0, MAX_DEPTH])
+    clamp = registry.output_clamp(depth_range)
+    method = Method(
+        registry.MODELS[name].output, model, ck["nominal_displacement"], depth_range=clamp
+    )
     t0 = time.perf_counter()
     predictions = runfolder.predictions_dir(out) if save_predictions else None
     result = evaluate(method, dataset, dev, batch_size, predictions_dir=predictions)
@@ -98,6 +102,7 @@ def score_checkpoint(
         "shift": shift,
         "checkpoint": str(ckpt),
         "nominal_displacement": ck["nominal_displacement"],
+        "depth_range": list(depth_range),
         "training_state": ck.get("state"),
         "eval_seconds": round(time.perf_counter() - t0, 2),
     }

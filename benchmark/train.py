@@ -29,10 +29,12 @@ import torch
 import torch.nn.functional as F
 from tqdm import tqdm
 
+from stillbox_gen.dataset import MAX_DEPTH
+
 from . import evaluate, registry, runfolder
 from .checkpoint import first_line, load_checkpoint, load_weights
 from .config import TrainConfig
-from .data import EpochSampler, FrameStore, PairDataset, load_scenes
+from .data import EpochSampler, FrameStore, PairDataset, camera_of, load_scenes
 
 
 def resolve_device(name: str) -> torch.device:
@@ -178,6 +180,12 @@ class Trainer:
         if resume is not None:
             self._load_training_state(resume, last)
 
+        lo, hi = cfg.depth_range
+        if not 0 <= lo < hi <= MAX_DEPTH:
+            raise ValueError(
+                f"--clamp: must be LO,HI metres with 0 <= LO < HI <= {MAX_DEPTH:g}, "
+                f"got {lo:g},{hi:g}"
+            )
         train_scenes = load_scenes(Path(cfg.data), "train")
         val_scenes = load_scenes(Path(cfg.data), "val")
         if not train_scenes or not val_scenes:
@@ -190,11 +198,18 @@ class Trainer:
         self.train_store = FrameStore(train_scenes, cfg.cache, show)
         self.val_store = FrameStore(val_scenes, cfg.cache, show)
         self.cache_seconds = time.perf_counter() - t0
+        frames = min(s.frames for s in val_scenes)
+        if not 1 <= cfg.shift < frames:
+            raise ValueError(
+                f"--shift: must be at least 1 and below the {frames} frames of a scene, "
+                f"got {cfg.shift}"
+            )
+        self.camera = camera_of(Path(cfg.data))
         # depth targets are expressed for the nominal shift of the training set's displacement
         disp = np.median([s.displacement for s in train_scenes])
         self.nominal_displacement = float(cfg.shift * disp)
         self.train_set = PairDataset(
-            self.train_store, "train", cfg.shift, cfg.seed, target=self.output
+            self.train_store, "train", cfg.shift, cfg.seed, self.output, cfg.depth_range
         )
         self.val_set = PairDataset(self.val_store, "eval", cfg.shift)
         self.per_rank_batch = max(1, cfg.batch_size // self.world)
@@ -243,7 +258,8 @@ class Trainer:
 
     def checkpoint(self, name: str) -> None:
         """Save ``checkpoints/<name>.pt`` (main process only): weights, optimiser, scheduler,
-        counters, model name, nominal displacement (metres), shift and config."""
+        counters, model name, nominal displacement (metres), shift, depth range (metres), the
+        training camera (frame size in pixels, horizontal field of view in degrees) and config."""
         if not self.is_main_process:
             return
         runfolder.save_checkpoint(
@@ -256,6 +272,8 @@ class Trainer:
                 "model_name": self.cfg.model,
                 "nominal_displacement": self.nominal_displacement,
                 "shift": self.cfg.shift,
+                "depth_range": [float(v) for v in self.cfg.depth_range],
+                "camera": self.camera,
                 "config": asdict(self.cfg),
             },
         )
@@ -266,7 +284,12 @@ class Trainer:
 
     def validate(self) -> dict:
         result = evaluate.evaluate(
-            evaluate.Method(self.output, self.model, self.nominal_displacement),
+            evaluate.Method(
+                self.output,
+                self.model,
+                self.nominal_displacement,
+                depth_range=registry.output_clamp(self.cfg.depth_range),
+            ),
             self.val_set,
             self.device,
             self.cfg.eval_batch_size,

@@ -19,8 +19,9 @@ import pytest
 os.environ.setdefault("OPENCV_IO_ENABLE_OPENEXR", "1")
 
 CLI = [sys.executable, "-m", "stillbox_gen.cli"]
+TINY_SHARES = (0.5, 0.25, 0.25)  # train/val/test shares of tiny_dataset
 
-# Fixtures that render a dataset with Blender (here, in test_stats.py and test_bench.py).
+# Fixtures that render a dataset with Blender (here and in test_stats.py).
 RENDER_FIXTURES = frozenset({"default_dataset", "custom_dataset", "tiny_dataset"})
 
 
@@ -143,6 +144,34 @@ def custom_dataset(tmp_path_factory, photo_dir) -> Path:
         "--legacy",
         "--workers",
         1,
+        "--out",
+        out,
+        "--quiet",
+    )
+    return out
+
+
+@pytest.fixture(scope="session")
+def tiny_dataset(tmp_path_factory) -> Path:
+    """Six 64 px scenes (10 frames) whose seed puts at least one scene in every split (shares
+    0.5, 0.25, 0.25): the benchmark's smoke runs."""
+    from stillbox_gen.manifest import split_of
+
+    seed = next(
+        s
+        for s in range(100)
+        if {split_of(s, k, TINY_SHARES) for k in range(6)} == {"train", "val", "test"}
+    )
+    out = tmp_path_factory.mktemp("bench") / "tiny"
+    run_cli(
+        "--res",
+        64,
+        "--scenes",
+        6,
+        "--seed",
+        seed,
+        "--split",
+        ",".join(map(str, TINY_SHARES)),
         "--out",
         out,
         "--quiet",

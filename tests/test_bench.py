@@ -15,14 +15,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import CliResult, invoke_main, run_cli
+from conftest import CliResult, invoke_main
 
 from benchmark import cli, runfolder
 from benchmark.data import FrameStore, PairDataset, load_scenes
-from stillbox_gen.manifest import split_of
 
 BENCH = [sys.executable, "-m", "benchmark.cli"]
-SHARES = (0.5, 0.25, 0.25)
 
 
 def bench(*args, check: bool = True) -> CliResult:
@@ -39,31 +37,6 @@ def bench_e2e(*args, check: bool = True) -> subprocess.CompletedProcess:
     if check and proc.returncode != 0:
         raise AssertionError(f"stillbox-bench {' '.join(map(str, args))} failed:\n{proc.stderr}")
     return proc
-
-
-@pytest.fixture(scope="session")
-def tiny_dataset(tmp_path_factory) -> Path:
-    """Six 64 px scenes whose seed puts at least one scene in every split."""
-    seed = next(
-        s
-        for s in range(100)
-        if {split_of(s, k, SHARES) for k in range(6)} == {"train", "val", "test"}
-    )
-    out = tmp_path_factory.mktemp("bench") / "tiny"
-    run_cli(
-        "--res",
-        64,
-        "--scenes",
-        6,
-        "--seed",
-        seed,
-        "--split",
-        ",".join(map(str, SHARES)),
-        "--out",
-        out,
-        "--quiet",
-    )
-    return out
 
 
 @pytest.fixture(scope="session")

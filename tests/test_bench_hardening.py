@@ -14,7 +14,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import test_bench
 import torch
 from conftest import CliResult
 from test_bench import bench
@@ -22,8 +21,6 @@ from test_bench import bench
 from benchmark import registry, runfolder, train
 from benchmark.config import TrainConfig
 from benchmark.runner import train_config
-
-tiny_dataset = test_bench.tiny_dataset  # the fixture: six 64 px scenes, every split non-empty
 
 
 def assert_bench_error(proc: CliResult | subprocess.CompletedProcess, *words: str) -> str:
