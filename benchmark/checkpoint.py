@@ -147,9 +147,10 @@ def depth_network(
     nominal displacement (m); ``info``: the training camera (``width``, ``height`` in pixels,
     ``fov_deg`` horizontal degrees; from the checkpoint's ``camera``, else from its training
     dataset's dataset.json, else ``camera`` given here, which also overrides them),
-    ``depth_range`` [lo, hi] (m), ``clamped`` (True when narrower than [0, MAX_DEPTH]: outputs must
-    be clamped to ``depth_range``) and ``model_name``. A checkpoint of a method that does not
-    output depth (flow networks) is refused: ValueError of one line naming ``flag`` and the file.
+    ``depth_range`` [lo, hi] (m), ``clamp`` (the range outputs must be clamped to, None unless
+    narrower than [0, MAX_DEPTH]: registry.output_clamp) and ``model_name``. A checkpoint of a
+    method that does not output depth (flow networks) is refused: ValueError of one line naming
+    ``flag`` and the file.
     """
     from stillbox_gen.dataset import MAX_DEPTH
 
@@ -174,5 +175,5 @@ def depth_network(
     if not (0 <= lo < hi and d0 > 0 and math.isfinite(hi) and math.isfinite(d0)):
         raise ValueError(f"{where}: depth_range [{lo}, {hi}] m or d0 {d0} m is not usable")
     info = camera if camera is not None else _training_camera(ck, where)
-    info = {**info, "depth_range": [lo, hi], "clamped": (lo, hi) != (0.0, MAX_DEPTH)}
+    info = {**info, "depth_range": [lo, hi], "clamp": registry.output_clamp((lo, hi))}
     return model, DepthScale(theta_max=hi, d0=d0), {**info, "model_name": name}

@@ -22,6 +22,7 @@ import os
 import shutil
 import time
 from collections import Counter, deque
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -218,17 +219,58 @@ class Outputs:
 
 
 @torch.no_grad()
-def depth_of_pairs(job: Job, ring: deque, shifts: list[int]) -> torch.Tensor:
-    """Network outputs (n, H, W) at the input resolution (m, for the nominal displacement) of the
-    pairs (frame t − δ, frame t), δ in ``shifts``; ``ring[-1]`` is frame t. One batch; clamped to
-    the training depth range for a clamped network."""
-    current = normalise(ring[-1])
-    x = np.stack([np.concatenate([normalise(ring[-1 - s]), current]) for s in shifts])
-    out = job.model(torch.from_numpy(x).to(job.device))[0]
-    if job.info["clamped"]:
-        out = out.clamp(*job.info["depth_range"])
-    w, h = job.size
+def network_outputs(
+    model: torch.nn.Module,
+    clamp: tuple[float, float] | None,
+    device: torch.device,
+    frames: Sequence[np.ndarray],
+    shifts: list[int],
+) -> torch.Tensor:
+    """Network outputs (n, H, W) at the frames' resolution (m, for the nominal displacement) of
+    the pairs (frame t − δ, frame t), δ in ``shifts``; ``frames[-1]`` is frame t, ``frames[-1 - δ]``
+    frame t − δ ((H, W, 3) uint8 RGB). One batch; clamped to ``clamp`` (a clamped network's range,
+    m) when given."""
+    current = normalise(frames[-1])
+    x = np.stack([np.concatenate([normalise(frames[-1 - s]), current]) for s in shifts])
+    out = model(torch.from_numpy(x).to(device))[0]
+    if clamp is not None:
+        out = out.clamp(*clamp)
+    h, w = frames[-1].shape[:2]
     return upsample_to(out, h, w).float().cpu()  # .cpu() waits for a GPU
+
+
+@dataclass
+class FrameDepth:
+    """One frame's fused depth: the shifts used (frames), their displacements d* (m), the
+    targets d_opt they were chosen for (m), the depth (H, W) m and its saturated pixels."""
+
+    shifts: list[int]
+    displacements: list[float]
+    targets: list[float]
+    depth: torch.Tensor
+    saturated: torch.Tensor
+    network_s: float  # seconds spent in the network
+
+
+def frame_depth(
+    planner: ShiftPlanner, available: np.ndarray, outputs: Callable[[list[int]], torch.Tensor]
+) -> FrameDepth | None:
+    """One step of the frame loop (thesis Fig. 6.4): the planner's shifts among ``available``
+    (``available[k]`` = d(t, k + 1), m), the network ``outputs(shifts)`` (n, H, W), their fusion,
+    and the planner's update. None when no shift has any motion (hovering: depth undefined)."""
+    target = [planner.scale.d0] if planner.d_opt is None else [float(v) for v in planner.d_opt]
+    if not (available > 0).any():
+        return None
+    shifts = [s for s in planner.plan(available) if available[s - 1] > 0]
+    if not shifts:
+        return None
+    tick = time.perf_counter()
+    out = outputs(shifts)
+    network_s = time.perf_counter() - tick
+    d = [float(available[s - 1]) for s in shifts]
+    depth, saturated = fuse(out, d, planner.scale)
+    planner.update(depth, saturated)
+    return FrameDepth(shifts, d, target, depth, saturated, network_s)
 
 
 def run(job: Job, o: InferOptions) -> dict:
@@ -249,6 +291,7 @@ def run(job: Job, o: InferOptions) -> dict:
 def _loop(job: Job, o: InferOptions, folder: Path) -> dict:
     """The frame loop (see the module doc), writing into ``folder``."""
     planner = ShiftPlanner(o.shifts, job.scale, o.ema, o.fixed_shift)
+    net = (job.model, job.info["clamp"], job.device)
     outputs = Outputs(folder, job, o.depth_format, o.max_depth)
     ring: deque = deque(maxlen=job.max_shift + 1)
     hist: Counter = Counter()
@@ -265,23 +308,17 @@ def _loop(job: Job, o: InferOptions, folder: Path) -> dict:
                 outputs.row(0, "first frame (no earlier frame)")
                 continue
             available = video.displacements(job.positions, t, len(ring) - 1)
-            target = [job.scale.d0] if planner.d_opt is None else list(planner.d_opt)
-            moving = bool((available > 0).any())  # hovering: depth undefined
-            shifts = [s for s in planner.plan(available) if available[s - 1] > 0] if moving else []
-            if not shifts:
+            est = frame_depth(planner, available, lambda s: network_outputs(*net, ring, s))
+            if est is None:
                 stats["no_motion"] += 1
                 outputs.row(t, "no motion")
                 continue
-            tick = time.perf_counter()
-            out = depth_of_pairs(job, ring, shifts)
-            stats["network_s"] += time.perf_counter() - tick
-            d = [float(available[s - 1]) for s in shifts]
-            depth, saturated = fuse(out, d, job.scale)
-            planner.update(depth, saturated)
-            hist.update(shifts)
+            stats["network_s"] += est.network_s
+            hist.update(est.shifts)
             stats["with_depth"] += 1
-            outputs.frame(t, rgb, depth.numpy())
-            outputs.row(t, "depth", shifts, d, target, float(depth.mean()))
+            outputs.frame(t, rgb, est.depth.numpy())
+            mean = float(est.depth.mean())
+            outputs.row(t, "depth", est.shifts, est.displacements, est.targets, mean)
     finally:
         bar.close()
         outputs.close()
@@ -302,7 +339,7 @@ def _summary(job: Job, o: InferOptions, stats: dict, hist: Counter) -> dict:
         "nominal_displacement_m": job.scale.d0,
         "theta_max_m": job.scale.theta_max,
         "depth_range_m": job.info["depth_range"],
-        "clamped": job.info["clamped"],
+        "clamp": job.info["clamp"],
         "input": str(o.input),
         "frames_in": stats["frames"],
         "frames_with_depth": n,

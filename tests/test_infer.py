@@ -310,7 +310,7 @@ def test_clamped_network_outputs_stay_in_its_range(files, tmp_path):
     frame, shift 1) every depth is its clamped output, inside [10, 60] m."""
     ckpt = _checkpoint(tmp_path / "clamped.pt", "depthnet-tiny", depth_range=[10.0, 60.0])
     _, scale, info = depth_network(ckpt)
-    assert (scale.theta_max, scale.d0, info["clamped"]) == (60.0, 0.3, True)
+    assert (scale.theta_max, scale.d0, info["clamp"]) == (60.0, 0.3, (10.0, 60.0))
     out = tmp_path / "out"
     args = ("--input", files["folder"], "--fps", FPS, "--speed", 3, "--fixed-shift", 1)
     proc = invoke_main(cli.main, "infer", "--ckpt", ckpt, "--out", out, "--quiet", *args)
@@ -328,7 +328,7 @@ def test_training_camera_sources(files, tmp_path):
     (data / "dataset.json").write_text(json.dumps({"config": {"camera": camera}}))
     ckpt = _checkpoint(tmp_path / "a.pt", "depthnet-tiny", camera=None, config={"data": str(data)})
     info = depth_network(ckpt)[2]
-    assert (info["width"], info["height"], info["clamped"]) == (128, 64, False)
+    assert (info["width"], info["height"], info["clamp"]) == (128, 64, None)
     assert info["fov_deg"] == pytest.approx(120.0)  # 2·atan(64 / f) with f = 64 / tan(60°)
     lost = _checkpoint(tmp_path / "b.pt", "depthnet-tiny", camera=None)
     out = tmp_path / "out"
