@@ -17,7 +17,7 @@ from stillbox_gen.dataset import MAX_DEPTH, default_root
 
 from . import registry
 from . import speed as speed_table
-from .config import EVAL_BATCH_SIZE, default
+from .config import EVAL_BATCH_SIZE, MULTISHIFT_MAX_SHIFT, default
 from .models import count_parameters
 from .multishift import EMA_LAMBDA
 from .registry import CLAMPED_RECIPE, DEPTH_RECIPE
@@ -585,6 +585,75 @@ def infer(input_: Path, res: str | None, **o) -> None:
     except ValueError as e:
         raise UserError(str(e)) from None
     click.echo(describe(summary, opts.out))
+
+
+@cli.command("eval-multishift")
+@click.option(
+    "--ckpt",
+    "ckpts",
+    type=click.Path(path_type=Path),
+    multiple=True,
+    required=True,
+    help="Depth checkpoint written by 'run' (repeat to compare networks).",
+)
+@click.option(
+    "--data",
+    type=click.Path(path_type=Path),
+    required=True,
+    help="Dataset of long sequences, e.g. stillbox-gen --frames 30 --rotation-noise 0.0331.",
+)
+@click.option(
+    "--split",
+    type=click.Choice(["train", "val", "test"]),
+    default="test",
+    show_default=True,
+    help="Split of sequences to score.",
+)
+@click.option("--shifts", default="1,2,3", show_default=True, help="Pairs per frame to score, n.")
+@_int_option("--max-shift", MULTISHIFT_MAX_SHIFT, "Largest frame shift; frames t >= it are scored.")
+@click.option("--scenes", type=int, help="Score only the split's first N sequences.")
+@click.option("--out", type=click.Path(path_type=Path), required=True, help="Results folder.")
+@DEVICE_OPTION
+@click.option("--quiet", is_flag=True, help="No progress bar.")
+def eval_multishift(
+    ckpts: tuple[Path, ...],
+    data: Path,
+    split: str,
+    shifts: str,
+    max_shift: int,
+    scenes: int | None,
+    out: Path,
+    device: str,
+    quiet: bool,
+) -> None:
+    """Score frame-shift strategies on generated sequences (thesis 6.2-6.4, Fig. 6.6): the
+    nominal shift, the optimal shift (n=1) and n-pair fusion, per checkpoint; MAE/MRE/MLE overall
+    and per depth band, and network time per frame."""
+    from .multishift_eval import run as run_multishift
+
+    for ckpt in ckpts:
+        if not ckpt.is_file():
+            raise UserError(f"--ckpt: no such file '{ckpt}'")
+    data = _dataset_dir(data)
+    try:
+        counts = tuple(int(v) for v in shifts.split(","))
+    except ValueError:
+        raise UserError(f"--shifts: expected comma-separated integers, got '{shifts}'") from None
+    if max_shift < 1:
+        raise UserError(f"--max-shift: must be at least 1, got {max_shift}")
+    if scenes is not None and scenes < 1:
+        raise UserError(f"--scenes: must be at least 1, got {scenes}")
+    if out.exists() and not out.is_dir():
+        raise UserError(f"--out: '{out}' is a file")
+    dev = _device(device)
+    try:  # checkpoints and data are checked before anything is written to --out
+        _, md = run_multishift(
+            list(ckpts), data, out, split, counts, max_shift, dev, limit=scenes, progress=not quiet
+        )
+    except ValueError as e:
+        raise UserError(str(e)) from None
+    click.echo(md)
+    click.echo(f"results in {out}")
 
 
 def main(argv: list[str] | None = None) -> None:

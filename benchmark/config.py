@@ -14,6 +14,9 @@ from .registry import DEPTH_RECIPE
 _R = DEPTH_RECIPE
 
 EVAL_BATCH_SIZE = 64  # pairs per forward pass when scoring (results do not depend on it)
+#: eval-multishift's largest frame shift (frames; 1.2 m at StillBox's 0.1 m per frame): frames
+#: t >= it of each sequence are scored
+MULTISHIFT_MAX_SHIFT = 12
 
 
 @dataclass

@@ -1,0 +1,285 @@
+"""``stillbox-bench eval-multishift``: frame-shift strategies scored on generated sequences.
+
+The thesis' Fig. 6.6 analogue. Each test sequence (e.g. ``stillbox-gen --frames 30
+--rotation-noise 0.0331``: the orientation noise of thesis 6.4) is run frame by frame as
+``stillbox-bench infer`` runs a video (benchmark.infer.frame_depth), once per depth checkpoint and
+strategy:
+
+- ``nominal``: always the shift whose displacement is closest to the network's d0 (DepthNet's
+  3 frames), the pairs it was trained on;
+- ``n=1``: the optimal shift of thesis 6.2 (eq. 6.2), chosen from the previous frame's depth;
+- ``n=2``, ``n=3``, …: n pairs per frame, one per k-means cluster of the previous depth, fused
+  by eq. 6.3 (thesis 6.3).
+
+The planner starts afresh on each sequence at frame 1; frames t ≥ ``max_shift`` are scored (every
+strategy has every shift there, and has seen earlier frames), the same frames for every strategy,
+against the frame's ground-truth depth: MAE, MRE, MLE (benchmark.metrics: per image, then the mean
+over images) overall and per band of ground-truth depth (BANDS; a band's metrics are per image over
+its pixels, averaged over the images that have some), plus the network's time per frame (the n
+pairs are one batch). Displacements come from the camera positions of each frame.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import time
+from collections import Counter
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from stillbox_gen.dataset import Dataset, Scene
+
+from . import metrics
+from .checkpoint import depth_network
+from .config import MULTISHIFT_MAX_SHIFT
+from .infer import frame_depth, network_outputs
+from .multishift import EMA_LAMBDA, MAX_SHIFTS, ShiftPlanner, closest_shift
+
+BANDS = ((0.0, 10.0), (10.0, 25.0), (25.0, 50.0), (50.0, 100.0))  # ground-truth depth, metres
+SCORES = ("mae", "mre", "mle")
+DEFAULT_SHIFT_COUNTS = (1, 2, 3)
+RESULTS_CSV, RESULTS_MD, RESULTS_JSON = "results.csv", "results.md", "results.json"
+FIGURE = "mre_vs_time.png"
+
+
+@dataclass(frozen=True)
+class Strategy:
+    """``n``: pairs per frame (0: the fixed nominal shift)."""
+
+    n: int
+
+    @property
+    def label(self) -> str:
+        return "nominal" if self.n == 0 else f"n={self.n}"
+
+
+def strategies(counts: tuple[int, ...]) -> list[Strategy]:
+    """The nominal shift, then n = each of ``counts`` (1..MAX_SHIFTS)."""
+    bad = [n for n in counts if not 1 <= n <= MAX_SHIFTS]
+    if bad or not counts:
+        raise ValueError(f"--shifts: each n must be in 1..{MAX_SHIFTS}, got {counts}")
+    return [Strategy(0), *(Strategy(n) for n in sorted(set(counts)))]
+
+
+def sequences(data: Path, split: str, max_shift: int, limit: int | None) -> list[Scene]:
+    """The split's scenes (first ``limit``); ValueError naming --data when they are too short
+    for ``max_shift`` (the first scored frame) or absent."""
+    ds = Dataset(data)
+    scenes = ds.scenes(split, limit)
+    if not scenes:
+        raise ValueError(f"--data {data}: no scene in the {split} split")
+    frames = min(s.frames for s in scenes)
+    if frames <= max_shift:
+        raise ValueError(
+            f"--data {data}: scenes of {frames} frames; --max-shift {max_shift} needs more "
+            f"(generate them with stillbox-gen --frames 30)"
+        )
+    return scenes
+
+
+def displacements(scene: Scene, t: int, max_shift: int) -> np.ndarray:
+    """d(t, δ) = |position(t) − position(t − δ)| (m) for δ = 1..min(t, max_shift)."""
+    p = scene.cam2world[:, :3, 3]
+    return np.array([np.linalg.norm(p[t] - p[t - d]) for d in range(1, min(t, max_shift) + 1)])
+
+
+class Tally:
+    """Per-image scores of one (checkpoint, strategy), and its time and shifts."""
+
+    def __init__(self) -> None:
+        self.scores: dict[str, list[torch.Tensor]] = {}
+        self.network_s, self.frames, self.pairs = 0.0, 0, 0
+        self.shifts: Counter = Counter()  # frame shift -> pairs that used it
+
+    def add(self, pred: torch.Tensor, gt: torch.Tensor) -> None:
+        for key, (lo, hi) in [("all", (0.0, math.inf)), *((band_key(b), b) for b in BANDS)]:
+            inside = (gt >= lo) & (gt < hi) if key != "all" else torch.ones_like(gt, dtype=bool)
+            masked = torch.where(inside, gt, torch.full_like(gt, math.nan))
+            m = metrics.image_metrics(pred[None], masked[None])
+            for name in (*SCORES, "valid_pixels"):
+                self.scores.setdefault(f"{key}/{name}", []).append(m[name])
+
+    def summary(self) -> dict:
+        out: dict = {}
+        for key in ["all", *map(band_key, BANDS)]:
+            per_image = {n: torch.cat(self.scores[f"{key}/{n}"]) for n in (*SCORES, "valid_pixels")}
+            agg = metrics.aggregate(per_image)
+            out.update({f"{key}/{n}": agg[n] for n in SCORES})
+            out[f"{key}/images"] = agg["images"]
+        ms = 1000 * self.network_s / max(1, self.frames)
+        out.update(frames=self.frames, pairs_per_frame=self.pairs / max(1, self.frames))
+        out["shifts_used"] = " ".join(f"{k}:{v}" for k, v in sorted(self.shifts.items()))
+        out.update(network_ms_per_frame=ms, fps=1000 / ms if ms > 0 else math.inf)
+        return out
+
+
+def band_key(band: tuple[float, float]) -> str:
+    return f"{band[0]:g}-{band[1]:g}m"
+
+
+def run_sequence(
+    net: tuple, scale, strategy: Strategy, scene: Scene, frames: list, depths: list,
+    max_shift: int, ema: float, tally: Tally,
+) -> None:  # fmt: skip
+    """One strategy over one sequence; frames t ≥ max_shift are added to ``tally``."""
+    nominal = closest_shift(scale.d0, displacements(scene, max_shift, max_shift))
+    fixed = nominal if strategy.n == 0 else None
+    planner = ShiftPlanner(max(1, strategy.n), scale, ema, fixed)
+    for t in range(1, scene.frames):
+        available = displacements(scene, t, max_shift)
+        window = frames[max(0, t - max_shift) : t + 1]
+        est = frame_depth(planner, available, lambda s, w=window: network_outputs(*net, w, s))
+        if est is None or t < max_shift:
+            continue
+        tally.add(est.depth, torch.from_numpy(depths[t]))
+        tally.network_s += est.network_s
+        tally.frames += 1
+        tally.pairs += len(est.shifts)
+        tally.shifts.update(est.shifts)
+
+
+def evaluate_multishift(
+    checkpoints: list[Path],
+    data: Path,
+    split: str,
+    counts: tuple[int, ...],
+    max_shift: int,
+    device: torch.device,
+    ema: float = EMA_LAMBDA,
+    limit: int | None = None,
+    progress: bool = True,
+) -> list[dict]:
+    """Rows of scores, one per (checkpoint, strategy); see the module doc. Every checkpoint is
+    loaded and checked before any frame is read (ValueError naming --ckpt or --data)."""
+    plan = strategies(counts)
+    nets = []
+    for ckpt in checkpoints:
+        model, scale, info = depth_network(ckpt, "--ckpt")
+        nets.append((ckpt, (model.to(device), info["clamp"], device), scale, info))
+    scenes = sequences(data, split, max_shift, limit)
+    size = scenes[0].load_rgb(0).shape[:2]
+    for ckpt, _, _, info in nets:
+        if (info["height"], info["width"]) != size:
+            raise ValueError(
+                f"--ckpt {ckpt}: trained on {info['width']}x{info['height']} frames, the "
+                f"sequences are {size[1]}x{size[0]}"
+            )
+    tallies = {(i, s.n): Tally() for i in range(len(nets)) for s in plan}
+    for scene in tqdm(scenes, desc="sequences", unit="scene", disable=not progress):
+        frames = [scene.load_rgb(f) for f in range(scene.frames)]
+        depths = [scene.load_depth(f) for f in range(scene.frames)]
+        for i, (_, net, scale, _) in enumerate(nets):
+            for s in plan:
+                run_sequence(net, scale, s, scene, frames, depths, max_shift, ema, tallies[i, s.n])
+    rows = []
+    for i, (ckpt, _, scale, info) in enumerate(nets):
+        for s in plan:
+            row = {"model": info["model_name"], "checkpoint": str(ckpt), "strategy": s.label}
+            row.update(d0_m=scale.d0, theta_max_m=scale.theta_max, scenes=len(scenes))
+            rows.append({**row, **tallies[i, s.n].summary()})
+    return rows
+
+
+def markdown(rows: list[dict], info: dict) -> str:
+    """The results as two Markdown tables: overall, then MRE per band."""
+    lines = [
+        f"# Frame-shift strategies on {info['data']} ({info['split']} split, {info['scenes']} "
+        f"sequences of {info['frames_per_scene']} frames; frames t ≥ {info['max_shift']} scored, "
+        f"{rows[0]['frames'] if rows else 0} per strategy)",
+        "",
+        "| model | strategy | pairs/frame | MAE (m) | MRE | MLE | network ms/frame | shifts used |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r['model']} | {r['strategy']} | {r['pairs_per_frame']:.2f} | {r['all/mae']:.3f} "
+            f"| {r['all/mre']:.3f} | {r['all/mle']:.3f} | {r['network_ms_per_frame']:.2f} "
+            f"| {r['shifts_used']} |"
+        )
+    heads = [band_key(b) for b in BANDS]
+    lines += ["", "MAE (m) / MRE per band of ground-truth depth:", ""]
+    lines.append("| model | strategy | " + " | ".join(heads) + " |")
+    lines.append("|---|---|" + "---|" * len(heads))
+    for r in rows:
+        cells = [f"{r[f'{h}/mae']:.2f} / {r[f'{h}/mre']:.3f}" for h in heads]
+        lines.append(f"| {r['model']} | {r['strategy']} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def write_results(out: Path, rows: list[dict], info: dict) -> str:
+    """results.csv, results.json, results.md and the MRE-vs-time figure into ``out``; returns
+    the Markdown."""
+    out.mkdir(parents=True, exist_ok=True)
+    with open(out / RESULTS_CSV, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    (out / RESULTS_JSON).write_text(json.dumps({**info, "rows": rows}, indent=2) + "\n")
+    md = markdown(rows, info)
+    (out / RESULTS_MD).write_text(md)
+    _figure(rows, out / FIGURE)
+    return md
+
+
+def _figure(rows: list[dict], path: Path) -> None:
+    """MRE against the network's time per frame, one line per checkpoint (thesis Fig. 6.6)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for ckpt in dict.fromkeys(r["checkpoint"] for r in rows):
+        mine = [r for r in rows if r["checkpoint"] == ckpt]
+        x = [r["network_ms_per_frame"] for r in mine]
+        y = [r["all/mre"] for r in mine]
+        ax.plot(x, y, "o-", label=mine[0]["model"])
+        for r, xi, yi in zip(mine, x, y, strict=True):
+            ax.annotate(r["strategy"], (xi, yi), textcoords="offset points", xytext=(4, 4))
+    ax.set_xlabel("network time per frame (ms, this machine)")
+    ax.set_ylabel("MRE")
+    ax.grid(alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def run(
+    checkpoints: list[Path],
+    data: Path,
+    out: Path,
+    split: str = "test",
+    counts: tuple[int, ...] = DEFAULT_SHIFT_COUNTS,
+    max_shift: int = MULTISHIFT_MAX_SHIFT,
+    device: torch.device | None = None,
+    ema: float = EMA_LAMBDA,
+    limit: int | None = None,
+    progress: bool = True,
+) -> tuple[list[dict], str]:
+    """Score and write the results (``out`` is created only after every check); returns the
+    rows and the Markdown."""
+    device = device or torch.device("cpu")
+    t0 = time.perf_counter()
+    rows = evaluate_multishift(
+        checkpoints, data, split, counts, max_shift, device, ema, limit, progress
+    )
+    ds = Dataset(data)
+    info = {
+        "data": str(data),
+        "split": split,
+        "scenes": rows[0]["scenes"],
+        "frames_per_scene": ds.info.get("frames_per_scene"),
+        "max_shift": max_shift,
+        "ema": ema,
+        "bands_m": [list(b) for b in BANDS],
+        "device": str(device),
+        "seconds": round(time.perf_counter() - t0, 1),
+    }
+    return rows, write_results(out, rows, info)
