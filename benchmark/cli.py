@@ -420,9 +420,41 @@ def _int_list(option: str, value: str) -> tuple[int, ...]:
 @click.option(
     "--models",
     "names",
-    default=",".join(speed_table.DEFAULT_MODELS),
+    default=None,
+    help="Comma-separated registered networks. [default: "
+    + ",".join(speed_table.DEFAULT_MODELS)
+    + "; with --train: "
+    + ",".join(speed_table.TRAIN_MODELS)
+    + "]",
+)
+@click.option(
+    "--train",
+    is_flag=True,
+    help="Time training steps instead (forward, loss, backward, optimiser step): samples/s at "
+    "--batches, on --data's training pairs or random batches at --time-res px.",
+)
+@click.option(
+    "--batches",
+    default=",".join(map(str, speed_table.TRAIN_BATCHES)),
     show_default=True,
-    help="Comma-separated registered networks.",
+    help="--train: comma-separated batch sizes.",
+)
+@click.option(
+    "--data",
+    type=click.Path(path_type=Path),
+    default=None,
+    help="--train: time on this dataset's training pairs (default: random inputs and targets).",
+)
+@click.option(
+    "--baseline",
+    is_flag=True,
+    help="--train: also time the step with the speed levers off, alternating in the same run.",
+)
+@click.option(
+    "--compile",
+    "compile_",
+    is_flag=True,
+    help="--train: torch.compile the network (levers-on rows).",
 )
 @click.option(
     "--resolutions",
@@ -435,8 +467,16 @@ def _int_list(option: str, value: str) -> tuple[int, ...]:
     speed_table.DEFAULT_TIME_SIZE,
     "Square input size (px) of the latency/throughput measurements.",
 )
-@_int_option("--warmup", speed_table.DEFAULT_WARMUP, "Untimed passes first.")
-@_int_option("--repeats", speed_table.DEFAULT_REPEATS, "Timed passes (median).")
+@_int_option(
+    "--warmup",
+    speed_table.DEFAULT_WARMUP,
+    "Untimed passes first (--train: steps; default 24 samples' worth, at least 1).",
+)
+@_int_option(
+    "--repeats",
+    speed_table.DEFAULT_REPEATS,
+    "Timed passes (median) (--train: steps; default 160 samples' worth, at least 3).",
+)
 @DEVICE_OPTION
 @_int_option("--threads", default("threads"), "Torch CPU threads.")
 @click.option(
@@ -447,7 +487,12 @@ def _int_list(option: str, value: str) -> tuple[int, ...]:
     help="Folder of the CSV (named after device, threads and torch version).",
 )
 def speed(
-    names: str,
+    names: str | None,
+    train: bool,
+    batches: str,
+    data: Path | None,
+    baseline: bool,
+    compile_: bool,
     resolutions: str,
     time_res: int,
     warmup: int,
@@ -456,10 +501,15 @@ def speed(
     threads: int,
     out: Path,
 ) -> None:
-    """Parameters, GMACs, batch-1 latency and batch-8 throughput of each network (Table 3.6)."""
+    """Parameters, GMACs, batch-1 latency and batch-8 throughput of each network (Table 3.6);
+    with --train, samples/s of training steps."""
     import torch
 
-    chosen = _models_option(names)
+    if train:
+        return _train_speed(
+            names, batches, data, baseline, compile_, time_res, device, threads, out
+        )
+    chosen = _models_option(names or ",".join(speed_table.DEFAULT_MODELS))
     no_net = [n for n in chosen if not registry.MODELS[n].trainable]
     if no_net:
         raise UserError(f"--models: {', '.join(no_net)} ha(s) no network to time")
@@ -480,6 +530,65 @@ def speed(
         f"timing at {time_res} px, median of {repeats} after {warmup} warm-up passes"
     )
     click.echo(speed_table.markdown(rows))
+    click.echo(f"written to {path}")
+
+
+def _train_speed(names, batches, data, baseline, compile_, time_res, device, threads, out) -> None:
+    """speed --train: samples/s of training steps (benchmark.train_speed)."""
+    import torch
+
+    from . import train_speed
+    from .data import DataError
+
+    chosen = _models_option(names or ",".join(speed_table.TRAIN_MODELS))
+    no_net = [n for n in chosen if not registry.MODELS[n].trainable]
+    if no_net:
+        raise UserError(f"--models: {', '.join(no_net)} ha(s) no network to train")
+    try:
+        sizes = tuple(int(v) for v in batches.split(",") if v.strip())
+    except ValueError:
+        sizes = ()
+    if not sizes or min(sizes) < 1:
+        raise UserError(f"--batches: expected comma-separated positive integers, got '{batches}'")
+    _int_list("--time-res", str(time_res))
+    ctx = click.get_current_context()
+    given = {
+        k: ctx.params[k]
+        for k in ("warmup", "repeats")
+        if ctx.get_parameter_source(k) is not click.core.ParameterSource.DEFAULT
+    }
+    if given.get("warmup", 0) < 0 or given.get("repeats", 1) < 1:
+        raise UserError("--warmup must be >= 0 and --repeats >= 1")
+    if data is not None and not data.is_dir():
+        raise UserError(f"--data: '{data}' is not a dataset folder")
+    if out.exists() and not out.is_dir():
+        raise UserError(f"--out: '{out}' is a file")
+    dev = _device(device)
+    if threads > 0:
+        torch.set_num_threads(threads)
+    try:
+        rows = train_speed.measure(
+            chosen,
+            dev,
+            sizes,
+            data,
+            time_res,
+            baseline,
+            compile_,
+            given.get("warmup"),
+            given.get("repeats"),
+        )
+    except (ValueError, DataError) as e:
+        raise UserError(str(e)) from None
+    path = out / train_speed.train_csv_name(dev)
+    speed_table.write_csv(rows, path)
+    source = f"training pairs of {data}" if data is not None else "random inputs and targets"
+    click.echo(
+        f"training step (data, forward, loss, backward, optimiser step) on {source}; "
+        f"device {dev}, {torch.get_num_threads()} threads, torch {torch.__version__}; median "
+        "step time after warm-up" + ("; levers off = baseline, alternating" if baseline else "")
+    )
+    click.echo(train_speed.markdown(rows))
     click.echo(f"written to {path}")
 
 

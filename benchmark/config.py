@@ -30,6 +30,13 @@ class TrainConfig:
     optimiser steps between mid-epoch ``last.pt`` checkpoints (0: epoch ends only);
     ``log_every``: steps between ``steps.csv`` rows; ``cache``: decoded frames in memory (None:
     when they fit).
+
+    Speed switches (results equal within floating-point noise unless said): ``channels_last``:
+    network and inputs in channels-last memory format; ``compile``: ``torch.compile`` the
+    network (a minute or more of compilation first); ``amp``: bfloat16 autocast of the forward
+    pass (None: on CUDA devices that support it, off on the CPU; changes results by bfloat16
+    rounding); ``workers``: DataLoader worker processes assembling batches (None: none on the
+    CPU, 2 persistent ones with pinned memory on CUDA). CUDA defaults are untested here.
     """
 
     model: str
@@ -61,6 +68,10 @@ class TrainConfig:
     cache: bool | None = None
     save_predictions: bool = False
     progress: bool = True
+    channels_last: bool = True
+    compile: bool = False
+    amp: bool | None = None
+    workers: int | None = None
 
 
 def default(name: str):

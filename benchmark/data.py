@@ -155,41 +155,60 @@ class PairDataset(torch.utils.data.Dataset):
     def __len__(self) -> int:
         return len(self.items)
 
-    def __getitem__(self, i: int) -> dict:
+    def _draw(self, i: int, epoch: int) -> tuple[int, int, int, bool, bool]:
+        """Pair ``i`` of ``epoch``: (scene position k, i1, i2, flip_h, flip_v)."""
         k, f = self.items[i]
-        scene = self.store.scenes[k]
         if self.mode == "eval":
-            i1, i2 = f, f + self.shift
-            target = self.store.depth(k, i2).copy()
-            flip_h = flip_v = False
+            return k, f, f + self.shift, False, False
+        rng = np.random.default_rng([self.seed, epoch, i])
+        last = len(self.store.scenes[k].rgb) - 1
+        i1 = int(rng.integers(0, last + 1))
+        # four uniforms in one call: the same numbers as four rng.uniform() calls
+        u_shift, u_swap, u_flip_h, u_flip_v = rng.random(4).tolist()
+        i2 = min(last, i1 + round(2 * self.shift * u_shift))
+        if u_swap > 0.5:
+            i1, i2 = i2, i1
+        return k, i1, i2, u_flip_h < 0.5, u_flip_v < 0.5
+
+    def _target(self, k: int, i1: int, i2: int) -> np.ndarray:
+        """(H, W) target of a pair before flips: the raw depth of i2 in eval mode and for flow
+        targets, else rescaled to the nominal shift and clipped (may be a view of the store)."""
+        if self.mode == "eval" or self.target == "flow":
+            return self.store.depth(k, i2)
+        if i1 == i2:
+            target = np.full_like(self.store.depth(k, i2), STILL_TARGET)
         else:
-            rng = np.random.default_rng([self.seed, self.epoch, i])
-            last = len(scene.rgb) - 1
-            i1 = int(rng.integers(0, last + 1))
-            i2 = min(last, i1 + round(2 * self.shift * rng.uniform()))
-            if rng.uniform() > 0.5:
-                i1, i2 = i2, i1
-            if self.target == "flow":
-                target = self.store.depth(k, i2)  # raw: the flow uses the true translation
-            elif i1 == i2:
-                target = np.full_like(self.store.depth(k, i2), STILL_TARGET)
-            else:
-                target = self.store.depth(k, i2) * (self.shift / abs(i2 - i1))
-            if self.target == "depth":
-                target = np.clip(target, *self.depth_range)
-            flip_h, flip_v = rng.uniform() < 0.5, rng.uniform() < 0.5
-        img1, img2 = self.store.rgb(k, i1), self.store.rgb(k, i2)
+            target = self.store.depth(k, i2) * (self.shift / abs(i2 - i1))
+        return np.clip(target, *self.depth_range)
+
+    def _camera(
+        self, k: int, i1: int, i2: int, flip_h: bool, flip_v: bool
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Translation (3,) and K (3, 3) of the (flipped) pair, float64."""
+        scene = self.store.scenes[k]
         translation = scene.translation(i1, i2)
         K = scene.K.copy()
-        h, w = target.shape
+        h, w = self.store.height, self.store.width
         if flip_h:
-            img1, img2, target = img1[:, ::-1], img2[:, ::-1], target[:, ::-1]
             translation = translation * np.array([-1.0, 1.0, 1.0])
             K[0, 2] = w - 1 - K[0, 2]
         if flip_v:
-            img1, img2, target = img1[::-1], img2[::-1], target[::-1]
             translation = translation * np.array([1.0, -1.0, 1.0])
             K[1, 2] = h - 1 - K[1, 2]
+        return translation, K
+
+    def __getitem__(self, i: int) -> dict:
+        k, i1, i2, flip_h, flip_v = self._draw(i, self.epoch)
+        scene = self.store.scenes[k]
+        target = self._target(k, i1, i2)
+        if self.mode == "eval":
+            target = target.copy()
+        img1, img2 = self.store.rgb(k, i1), self.store.rgb(k, i2)
+        translation, K = self._camera(k, i1, i2, flip_h, flip_v)
+        if flip_h:
+            img1, img2, target = img1[:, ::-1], img2[:, ::-1], target[:, ::-1]
+        if flip_v:
+            img1, img2, target = img1[::-1], img2[::-1], target[::-1]
         if self.target == "flow":
             depth = torch.from_numpy(np.ascontiguousarray(target, dtype=np.float64))
             target = flow_from_depth(depth, torch.from_numpy(K), torch.from_numpy(-translation))
@@ -204,6 +223,61 @@ class PairDataset(torch.utils.data.Dataset):
             "frames": torch.tensor([i1, i2]),
             "flips": torch.tensor([flip_h, flip_v]),
         }
+
+    def batch(self, indices: list[int], epoch: int | None = None) -> dict:
+        """Items ``indices`` of ``epoch`` (default: the current one) as one batch: the same
+        tensors as ``default_collate([self[i] for i in indices])``, bit for bit (same pairs,
+        flips and values), with one normalisation of the whole batch's uint8 frames instead of
+        one per frame, and no per-item tensors to collate."""
+        epoch = self.epoch if epoch is None else epoch
+        draws = [self._draw(i, epoch) for i in indices]
+        n, h, w = len(draws), self.store.height, self.store.width
+        frames = np.empty((n, 2, 3, h, w), np.uint8)
+        target = np.empty((n, h, w), np.float32)
+        translation, K = np.empty((n, 3)), np.empty((n, 3, 3))
+        for j, (k, i1, i2, flip_h, flip_v) in enumerate(draws):
+            view = (slice(None, None, -1 if flip_v else 1), slice(None, None, -1 if flip_h else 1))
+            frames[j, 0] = self.store.rgb(k, i1)[view].transpose(2, 0, 1)
+            frames[j, 1] = self.store.rgb(k, i2)[view].transpose(2, 0, 1)
+            target[j] = self._target(k, i1, i2)[view]
+            translation[j], K[j] = self._camera(k, i1, i2, flip_h, flip_v)
+        if self.target == "flow":  # per pair, as __getitem__ (one call is not faster here)
+            depth = torch.from_numpy(target.astype(np.float64))
+            flows = [
+                flow_from_depth(depth[j], torch.from_numpy(K[j]), torch.from_numpy(-translation[j]))
+                for j in range(n)
+            ]
+            target = torch.stack(flows).numpy().astype(np.float32)
+        x = frames.astype(np.float32)  # normalise's operations, in place on the whole batch
+        x /= 255.0
+        x -= 0.5
+        x /= 0.2
+        x = x.reshape(n, 6, h, w)
+        return {
+            "input": torch.from_numpy(x),
+            "target": torch.from_numpy(target),
+            "translation": torch.from_numpy(translation.astype(np.float32)),
+            "K": torch.from_numpy(K.astype(np.float32)),
+            "scene": torch.tensor([self.store.scenes[d[0]].index for d in draws]),
+            "frames": torch.tensor([d[1:3] for d in draws]),
+            "flips": torch.tensor([d[3:5] for d in draws]),
+        }
+
+
+class PairBatches(torch.utils.data.Dataset):
+    """A PairDataset read a batch at a time: item ``(epoch, indices)`` is
+    ``pairs.batch(indices, epoch)``. The epoch travels with each batch, so DataLoader workers
+    (persistent ones too) draw the same pairs as the training process would."""
+
+    def __init__(self, pairs: PairDataset):
+        self.pairs = pairs
+
+    def __len__(self) -> int:
+        return len(self.pairs)
+
+    def __getitem__(self, key: tuple[int, list[int]]) -> dict:
+        epoch, indices = key
+        return self.pairs.batch(indices, epoch)
 
 
 class EpochSampler(torch.utils.data.Sampler):
@@ -226,3 +300,19 @@ class EpochSampler(torch.utils.data.Sampler):
 
     def __len__(self) -> int:
         return len(self._indices()) - self.skip
+
+
+class EpochBatches(torch.utils.data.Sampler):
+    """The full batches of an EpochSampler's current epoch as ``(epoch, indices)`` keys for
+    PairBatches (the last, incomplete batch is dropped)."""
+
+    def __init__(self, sampler: EpochSampler, batch_size: int):
+        self.sampler, self.batch_size = sampler, batch_size
+
+    def __iter__(self):
+        order, epoch, b = list(self.sampler), self.sampler.epoch, self.batch_size
+        for j in range(0, len(order) - b + 1, b):
+            yield epoch, order[j : j + b]
+
+    def __len__(self) -> int:
+        return len(self.sampler) // self.batch_size

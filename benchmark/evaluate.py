@@ -109,7 +109,7 @@ def _to_uint8(x: torch.Tensor) -> np.ndarray:
     return np.clip(np.round(img), 0, 255).astype(np.uint8)
 
 
-@torch.no_grad()
+@torch.inference_mode()
 def evaluate(
     method: Method | torch.nn.Module,
     dataset,

@@ -34,7 +34,15 @@ from stillbox_gen.dataset import MAX_DEPTH
 from . import evaluate, registry, runfolder
 from .checkpoint import first_line, load_checkpoint, load_weights
 from .config import TrainConfig
-from .data import EpochSampler, FrameStore, PairDataset, camera_of, load_scenes
+from .data import (
+    EpochBatches,
+    EpochSampler,
+    FrameStore,
+    PairBatches,
+    PairDataset,
+    camera_of,
+    load_scenes,
+)
 
 
 def resolve_device(name: str) -> torch.device:
@@ -102,6 +110,73 @@ def multiscale_loss(outputs: list[torch.Tensor], target: torch.Tensor, weights) 
     return multiscale_l1(outputs, target, weights)
 
 
+def make_optimizer(params, cfg: TrainConfig, foreach: bool = True) -> torch.optim.Optimizer:
+    """The recipe's SGD or Adam; ``foreach``: the multi-tensor implementation (one kernel per
+    operation over all parameters instead of one per parameter; same arithmetic), which torch
+    picks by default on CUDA only."""
+    if cfg.optimizer == "adam":
+        return torch.optim.Adam(
+            params,
+            lr=cfg.lr,
+            betas=(cfg.momentum, cfg.beta2),
+            weight_decay=cfg.weight_decay,
+            foreach=foreach,
+        )
+    return torch.optim.SGD(
+        params,
+        lr=cfg.lr,
+        momentum=cfg.momentum,
+        dampening=cfg.dampening,
+        weight_decay=cfg.weight_decay,
+        foreach=foreach,
+    )
+
+
+def amp_dtype(cfg: TrainConfig, device: torch.device) -> torch.dtype | None:
+    """The autocast dtype of the training step, or None (float32). ``cfg.amp`` None: bfloat16
+    on a CUDA device that supports it, float32 elsewhere; True: bfloat16 on any device."""
+    on = cfg.amp
+    if on is None:
+        on = device.type == "cuda" and torch.cuda.is_bf16_supported()
+    return torch.bfloat16 if on else None
+
+
+class TrainStep:
+    """One optimiser step on a batch: forward, multi-scale loss (× ``loss_scale``), backward,
+    optimiser step; returns the loss (a 0-d tensor). ``channels_last``: inputs are handed to
+    the network in channels-last memory format (the network should be converted too)."""
+
+    def __init__(
+        self,
+        net: torch.nn.Module,
+        opt: torch.optim.Optimizer,
+        device: torch.device,
+        loss_weights,
+        loss_scale: float = 1.0,
+        channels_last: bool = False,
+        autocast: torch.dtype | None = None,
+    ):
+        self.net, self.opt, self.device = net, opt, device
+        self.loss_weights, self.loss_scale = loss_weights, loss_scale
+        self.memory_format = torch.channels_last if channels_last else torch.contiguous_format
+        self.autocast = autocast
+
+    def __call__(self, batch: dict) -> torch.Tensor:
+        x = batch["input"].to(self.device, non_blocking=True, memory_format=self.memory_format)
+        y = batch["target"].to(self.device, non_blocking=True)
+        if self.autocast is None:
+            outputs = self.net(x)
+        else:
+            with torch.autocast(self.device.type, self.autocast):
+                outputs = self.net(x)
+        loss = multiscale_loss([o.float() for o in outputs], y, self.loss_weights)
+        loss = loss * self.loss_scale
+        self.opt.zero_grad(set_to_none=True)
+        loss.backward()
+        self.opt.step()
+        return loss
+
+
 RESUME_KEYS = ("optimizer", "scheduler", "state")
 #: running sums of the open stage (steps since the last validation), kept in the checkpoint so
 #: a resumed stage logs the same train_loss and samples/s as an uninterrupted one
@@ -154,25 +229,27 @@ class Trainer:
                 self.model, load_checkpoint(cfg.pretrained, "--pretrained"), where, cfg.model
             )
             self.log(f"initialised from {cfg.pretrained}")
+        cuda = self.device.type == "cuda"
+        if cfg.channels_last:
+            self.model = self.model.to(memory_format=torch.channels_last)
+        if cuda:  # untested here (no GPU): cuDNN picks the fastest kernels for the input size
+            torch.backends.cudnn.benchmark = True
         self.net = self.model
         if self.world > 1:
-            ids = [self.device.index] if self.device.type == "cuda" else None
+            ids = [self.device.index] if cuda else None
             self.net = torch.nn.parallel.DistributedDataParallel(self.model, device_ids=ids)
-        if cfg.optimizer == "adam":
-            self.opt = torch.optim.Adam(
-                self.model.parameters(),
-                lr=cfg.lr,
-                betas=(cfg.momentum, cfg.beta2),
-                weight_decay=cfg.weight_decay,
-            )
-        else:
-            self.opt = torch.optim.SGD(
-                self.model.parameters(),
-                lr=cfg.lr,
-                momentum=cfg.momentum,
-                dampening=cfg.dampening,
-                weight_decay=cfg.weight_decay,
-            )
+        if cfg.compile:
+            self.net = torch.compile(self.net)
+        self.opt = make_optimizer(self.model.parameters(), cfg)
+        self.train_step = TrainStep(
+            self.net,
+            self.opt,
+            self.device,
+            cfg.loss_weights,
+            cfg.loss_scale,
+            cfg.channels_last,
+            amp_dtype(cfg, self.device),
+        )
         miles = sorted({max(1, round(m * cfg.epochs)) for m in cfg.milestones})
         self.sched = torch.optim.lr_scheduler.MultiStepLR(self.opt, miles, cfg.gamma)
         self.state = {"epoch": 0, "step_in_epoch": 0, "global_step": 0, "best": math.inf}
@@ -214,8 +291,16 @@ class Trainer:
         self.val_set = PairDataset(self.val_store, "eval", cfg.shift)
         self.per_rank_batch = max(1, cfg.batch_size // self.world)
         self.sampler = EpochSampler(len(self.train_set), cfg.seed, self.rank, self.world)
+        # whole batches from PairDataset.batch (the same tensors as collating single pairs);
+        # workers (CUDA's default, untested here) get each batch's epoch with its indices
+        workers = cfg.workers if cfg.workers is not None else (2 if cuda else 0)
         self.loader = torch.utils.data.DataLoader(
-            self.train_set, batch_size=self.per_rank_batch, sampler=self.sampler, drop_last=True
+            PairBatches(self.train_set),
+            batch_size=None,
+            sampler=EpochBatches(self.sampler, self.per_rank_batch),
+            num_workers=workers,
+            pin_memory=cuda,
+            persistent_workers=workers > 0,
         )
         self.steps_per_epoch = len(self.train_set) // self.world // self.per_rank_batch
         if self.steps_per_epoch == 0:
@@ -369,25 +454,20 @@ class Trainer:
             t_data = time.perf_counter()
             for batch in self.loader:
                 st["stage_wait"] += time.perf_counter() - t_data
-                x = batch["input"].to(self.device, non_blocking=True)
-                y = batch["target"].to(self.device, non_blocking=True)
-                loss = multiscale_loss(self.net(x), y, cfg.loss_weights) * cfg.loss_scale
-                self.opt.zero_grad(set_to_none=True)
-                loss.backward()
-                self.opt.step()
-                value = loss.item()
+                value = self.train_step(batch).item()
                 st["global_step"] += 1
                 st["step_in_epoch"] += 1
                 st["stage_loss_sum"] += value
                 st["stage_steps"] += 1
-                st["stage_samples"] += x.shape[0] * self.world
+                st["stage_samples"] += len(batch["input"]) * self.world
                 st["stage_seconds"] = seconds0 + time.perf_counter() - t_segment
-                bar.update(1)
-                bar.set_postfix(
+                bar.set_postfix(  # shown at the bar's next refresh (at most 10 a second)
                     loss=f"{value:.3f}",
                     samples_s=f"{st['stage_samples'] / st['stage_seconds']:.0f}",
                     epoch=st["epoch"],
+                    refresh=False,
                 )
+                bar.update(1)
                 if self.is_main_process and st["global_step"] % cfg.log_every == 0:
                     runfolder.append_row(
                         self.run,
