@@ -19,7 +19,7 @@ from . import registry
 from . import speed as speed_table
 from .config import EVAL_BATCH_SIZE, MULTISHIFT_MAX_SHIFT, default
 from .models import count_parameters
-from .multishift import EMA_LAMBDA
+from .multishift import BETA_MAX, BETA_MEAN, BETA_MIN, EMA_LAMBDA
 from .registry import CLAMPED_RECIPE, DEPTH_RECIPE
 from .runfolder import (
     COMPARISON,
@@ -118,6 +118,13 @@ DATA_OPTION = click.option(
     default=DEFAULT_DATA,
     show_default=True,
     help=f"Dataset folder made by stillbox-gen (the default is made by '{MAKE_DEFAULT_DATA}').",
+)
+BETA_MEAN_OPTION = click.option(
+    "--beta-mean",
+    type=float,
+    default=BETA_MEAN,
+    show_default=True,
+    help="The β = output/θ_max the shifts aim at and the fusion favours (thesis 6.2-6.3).",
 )
 DEVICE_OPTION = click.option(
     "--device", default=default("device"), show_default=True, help="auto | cpu | cuda | cuda:N."
@@ -657,6 +664,7 @@ def _size_option(value: str | None) -> tuple[int, int] | None:
     show_default=True,
     help="Smoothing λ of the target displacement (eq. 6.2), 0 <= λ < 1.",
 )
+@BETA_MEAN_OPTION
 @click.option(
     "--depth-format",
     type=click.Choice(["npy", "exr"]),
@@ -720,6 +728,7 @@ def infer(input_: Path, res: str | None, **o) -> None:
 )
 @click.option("--shifts", default="1,2,3", show_default=True, help="Pairs per frame to score, n.")
 @_int_option("--max-shift", MULTISHIFT_MAX_SHIFT, "Largest frame shift; frames t >= it are scored.")
+@BETA_MEAN_OPTION
 @click.option("--scenes", type=int, help="Score only the split's first N sequences.")
 @click.option("--out", type=click.Path(path_type=Path), required=True, help="Results folder.")
 @DEVICE_OPTION
@@ -730,6 +739,7 @@ def eval_multishift(
     split: str,
     shifts: str,
     max_shift: int,
+    beta_mean: float,
     scenes: int | None,
     out: Path,
     device: str,
@@ -750,6 +760,8 @@ def eval_multishift(
         raise UserError(f"--shifts: expected comma-separated integers, got '{shifts}'") from None
     if max_shift < 1:
         raise UserError(f"--max-shift: must be at least 1, got {max_shift}")
+    if not BETA_MIN < beta_mean < BETA_MAX:
+        raise UserError(f"--beta-mean: must be in ({BETA_MIN}, {BETA_MAX}), got {beta_mean}")
     if scenes is not None and scenes < 1:
         raise UserError(f"--scenes: must be at least 1, got {scenes}")
     if out.exists() and not out.is_dir():
@@ -757,8 +769,9 @@ def eval_multishift(
     dev = _device(device)
     try:  # checkpoints and data are checked before anything is written to --out
         _, md = run_multishift(
-            list(ckpts), data, out, split, counts, max_shift, dev, limit=scenes, progress=not quiet
-        )
+            list(ckpts), data, out, split, counts, max_shift, dev, beta_mean=beta_mean,
+            limit=scenes, progress=not quiet,
+        )  # fmt: skip
     except ValueError as e:
         raise UserError(str(e)) from None
     click.echo(md)

@@ -36,7 +36,16 @@ from . import video
 from .checkpoint import depth_network
 from .data import normalise
 from .metrics import upsample_to
-from .multishift import EMA_LAMBDA, MAX_SHIFTS, DepthScale, ShiftPlanner, fuse
+from .multishift import (
+    BETA_MAX,
+    BETA_MEAN,
+    BETA_MIN,
+    EMA_LAMBDA,
+    MAX_SHIFTS,
+    DepthScale,
+    ShiftPlanner,
+    fuse,
+)
 
 MIN_MAX_SHIFT = 8  # smallest default --max-shift (frames)
 MAX_MAX_SHIFT = 1000  # largest default --max-shift (frames kept in memory)
@@ -62,6 +71,7 @@ class InferOptions:
     fixed_shift: int | None = None
     max_shift: int | None = None
     ema: float = EMA_LAMBDA
+    beta_mean: float = BETA_MEAN
     depth_format: str = "npy"
     max_depth: float = MAX_DEPTH
     device: str = "auto"
@@ -111,6 +121,8 @@ def check_options(o: InferOptions) -> None:
         raise ValueError(f"--max-shift: must be at least 1, got {o.max_shift}")
     if not 0 <= o.ema < 1:
         raise ValueError(f"--ema: must be in [0, 1), got {o.ema}")
+    if not BETA_MIN < o.beta_mean < BETA_MAX:
+        raise ValueError(f"--beta-mean: must be in ({BETA_MIN}, {BETA_MAX}), got {o.beta_mean}")
     if o.train_fov is not None and o.res is None:
         raise ValueError("--train-fov: give --res WxH too (the training frame size)")
     if o.out.exists() and (not o.out.is_dir() or any(o.out.iterdir())):
@@ -268,7 +280,7 @@ def frame_depth(
     out = outputs(shifts)
     network_s = time.perf_counter() - tick
     d = [float(available[s - 1]) for s in shifts]
-    depth, saturated = fuse(out, d, planner.scale)
+    depth, saturated = fuse(out, d, planner.scale, planner.beta_mean)
     planner.update(depth, saturated)
     return FrameDepth(shifts, d, target, depth, saturated, network_s)
 
@@ -290,7 +302,7 @@ def run(job: Job, o: InferOptions) -> dict:
 
 def _loop(job: Job, o: InferOptions, folder: Path) -> dict:
     """The frame loop (see the module doc), writing into ``folder``."""
-    planner = ShiftPlanner(o.shifts, job.scale, o.ema, o.fixed_shift)
+    planner = ShiftPlanner(o.shifts, job.scale, o.ema, o.fixed_shift, o.beta_mean)
     net = (job.model, job.info["clamp"], job.device)
     outputs = Outputs(folder, job, o.depth_format, o.max_depth)
     ring: deque = deque(maxlen=job.max_shift + 1)

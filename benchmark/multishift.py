@@ -70,19 +70,24 @@ class DepthScale:
         return output * (d / self.d0)
 
 
-def weight(beta: torch.Tensor) -> torch.Tensor:
+def weight(beta: torch.Tensor, beta_mean: float = BETA_MEAN) -> torch.Tensor:
     """Fusion weight f(β) of eq. 6.3, elementwise: EPSILON below BETA_MIN, linear from EPSILON to 1
-    on [BETA_MIN, BETA_MEAN), linear from 1 to 0 on [BETA_MEAN, BETA_MAX), 0 from BETA_MAX on."""
+    on [BETA_MIN, beta_mean), linear from 1 to 0 on [beta_mean, BETA_MAX), 0 from BETA_MAX on."""
+    if not BETA_MIN < beta_mean < BETA_MAX:
+        raise ValueError(f"beta_mean must be in ({BETA_MIN}, {BETA_MAX}), got {beta_mean}")
     beta = torch.as_tensor(beta)
-    rising = EPSILON + (beta - BETA_MIN) / (BETA_MEAN - BETA_MIN) * (1.0 - EPSILON)
-    falling = (BETA_MAX - beta) / (BETA_MAX - BETA_MEAN)
-    w = torch.where(beta < BETA_MEAN, rising, falling)
+    rising = EPSILON + (beta - BETA_MIN) / (beta_mean - BETA_MIN) * (1.0 - EPSILON)
+    falling = (BETA_MAX - beta) / (BETA_MAX - beta_mean)
+    w = torch.where(beta < beta_mean, rising, falling)
     w = torch.where(beta < BETA_MIN, torch.full_like(w, EPSILON), w)
     return torch.where(beta >= BETA_MAX, torch.zeros_like(w), w)
 
 
 def fuse(
-    outputs: torch.Tensor, displacements: Sequence[float], scale: DepthScale
+    outputs: torch.Tensor,
+    displacements: Sequence[float],
+    scale: DepthScale,
+    beta_mean: float = BETA_MEAN,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Fuse the depth maps of ``n`` pairs of one frame (thesis §6.3).
 
@@ -100,7 +105,7 @@ def fuse(
         )
     pairs = zip(outputs, displacements, strict=True)
     estimates = torch.stack([scale.depth(o, d) for o, d in pairs])
-    w = weight(scale.beta(outputs))
+    w = weight(scale.beta(outputs), beta_mean)
     total = w.sum(dim=0)
     saturated = total <= 0
     weighted = (w * estimates).sum(dim=0) / torch.where(saturated, torch.ones_like(total), total)
@@ -165,12 +170,18 @@ class ShiftPlanner:
 
     ``n``: clusters, i.e. pairs per frame (1..MAX_SHIFTS; 1 is the optimal single shift of §6.2);
     ``scale``: the network's DepthScale; ``ema``: λ of eq. 6.2 (0: no smoothing);
-    ``fixed_shift``: always that shift (no adaptation). ``d_opt`` (m, sorted, one per cluster) is
-    None until the first :meth:`update`.
+    ``fixed_shift``: always that shift (no adaptation); ``beta_mean``: the β the shifts aim at and
+    the fusion favours (thesis: "e.g. 0.5"). ``d_opt`` (m, sorted, one per cluster) is None until
+    the first :meth:`update`.
     """
 
     def __init__(
-        self, n: int, scale: DepthScale, ema: float = EMA_LAMBDA, fixed_shift: int | None = None
+        self,
+        n: int,
+        scale: DepthScale,
+        ema: float = EMA_LAMBDA,
+        fixed_shift: int | None = None,
+        beta_mean: float = BETA_MEAN,
     ):
         if not 1 <= n <= MAX_SHIFTS:
             raise ValueError(f"n must be in 1..{MAX_SHIFTS}, got {n}")
@@ -178,7 +189,10 @@ class ShiftPlanner:
             raise ValueError(f"ema must be in [0, 1), got {ema}")
         if fixed_shift is not None and fixed_shift < 1:
             raise ValueError(f"fixed_shift must be at least 1, got {fixed_shift}")
+        if not BETA_MIN < beta_mean < BETA_MAX:
+            raise ValueError(f"beta_mean must be in ({BETA_MIN}, {BETA_MAX}), got {beta_mean}")
         self.n, self.scale, self.ema, self.fixed_shift = n, scale, ema, fixed_shift
+        self.beta_mean = beta_mean
         self.d_opt: np.ndarray | None = None
 
     def plan(self, available: np.ndarray) -> list[int]:
@@ -197,7 +211,7 @@ class ShiftPlanner:
         if kept.numel() == 0:
             return None
         centres = kept.mean().reshape(1) if self.n == 1 else kmeans_1d(kept, self.n)
-        return centres.numpy() / (self.scale.alpha * BETA_MEAN)
+        return centres.numpy() / (self.scale.alpha * self.beta_mean)
 
     def update(self, depth: torch.Tensor, saturated: torch.Tensor) -> None:
         """Move ``d_opt`` towards this frame's targets (eq. 6.2): λ·d_opt + (1 − λ)·targets; the

@@ -39,7 +39,7 @@ from . import metrics
 from .checkpoint import depth_network
 from .config import MULTISHIFT_MAX_SHIFT
 from .infer import frame_depth, network_outputs
-from .multishift import EMA_LAMBDA, MAX_SHIFTS, ShiftPlanner, closest_shift
+from .multishift import BETA_MEAN, EMA_LAMBDA, MAX_SHIFTS, ShiftPlanner, closest_shift
 
 BANDS = ((0.0, 10.0), (10.0, 25.0), (25.0, 50.0), (50.0, 100.0))  # ground-truth depth, metres
 SCORES = ("mae", "mre", "mle")
@@ -125,12 +125,13 @@ def band_key(band: tuple[float, float]) -> str:
 
 def run_sequence(
     net: tuple, scale, strategy: Strategy, scene: Scene, frames: list, depths: list,
-    max_shift: int, ema: float, tally: Tally,
+    max_shift: int, tally: Tally, ema: float = EMA_LAMBDA, beta_mean: float = BETA_MEAN,
 ) -> None:  # fmt: skip
-    """One strategy over one sequence; frames t ≥ max_shift are added to ``tally``."""
+    """One strategy over one sequence; frames t ≥ max_shift are added to ``tally`` (``ema``,
+    ``beta_mean``: the planner's, multishift.ShiftPlanner)."""
     nominal = closest_shift(scale.d0, displacements(scene, max_shift, max_shift))
     fixed = nominal if strategy.n == 0 else None
-    planner = ShiftPlanner(max(1, strategy.n), scale, ema, fixed)
+    planner = ShiftPlanner(max(1, strategy.n), scale, ema, fixed, beta_mean)
     for t in range(1, scene.frames):
         available = displacements(scene, t, max_shift)
         window = frames[max(0, t - max_shift) : t + 1]
@@ -152,6 +153,7 @@ def evaluate_multishift(
     max_shift: int,
     device: torch.device,
     ema: float = EMA_LAMBDA,
+    beta_mean: float = BETA_MEAN,
     limit: int | None = None,
     progress: bool = True,
 ) -> list[dict]:
@@ -176,7 +178,8 @@ def evaluate_multishift(
         depths = [scene.load_depth(f) for f in range(scene.frames)]
         for i, (_, net, scale, _) in enumerate(nets):
             for s in plan:
-                run_sequence(net, scale, s, scene, frames, depths, max_shift, ema, tallies[i, s.n])
+                tally = tallies[i, s.n]
+                run_sequence(net, scale, s, scene, frames, depths, max_shift, tally, ema, beta_mean)
     rows = []
     for i, (ckpt, _, scale, info) in enumerate(nets):
         for s in plan:
@@ -260,6 +263,7 @@ def run(
     max_shift: int = MULTISHIFT_MAX_SHIFT,
     device: torch.device | None = None,
     ema: float = EMA_LAMBDA,
+    beta_mean: float = BETA_MEAN,
     limit: int | None = None,
     progress: bool = True,
 ) -> tuple[list[dict], str]:
@@ -268,7 +272,7 @@ def run(
     device = device or torch.device("cpu")
     t0 = time.perf_counter()
     rows = evaluate_multishift(
-        checkpoints, data, split, counts, max_shift, device, ema, limit, progress
+        checkpoints, data, split, counts, max_shift, device, ema, beta_mean, limit, progress
     )
     ds = Dataset(data)
     info = {
@@ -278,6 +282,7 @@ def run(
         "frames_per_scene": ds.info.get("frames_per_scene"),
         "max_shift": max_shift,
         "ema": ema,
+        "beta_mean": beta_mean,
         "bands_m": [list(b) for b in BANDS],
         "device": str(device),
         "seconds": round(time.perf_counter() - t0, 1),

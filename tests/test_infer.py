@@ -230,6 +230,7 @@ ERRORS = [
     (("--input", "{mp4}", "--speed", 3, "--shifts", 5), "--shifts"),
     (("--input", "{mp4}", "--speed", 3, "--res", "100x64"), "--res"),
     (("--input", "{mp4}", "--speed", 3, "--fov", 200), "--fov"),
+    (("--input", "{mp4}", "--speed", 3, "--beta-mean", 0.9), "--beta-mean"),
     (("--input", "{mp4}", "--speed", 3, "--ckpt", "{flow_ckpt}"), "--ckpt"),
     (("--input", "{mp4}", "--poses", "{short_csv}"), "--poses"),
     (("--input", "{mp4}", "--poses", "{bad_csv}"), "--poses"),

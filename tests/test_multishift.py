@@ -222,3 +222,22 @@ def test_planner_fixed_shift_and_arguments():
     for bad in ({"n": 0}, {"n": 5}, {"n": 1, "ema": 1.0}, {"n": 1, "fixed_shift": 0}):
         with pytest.raises(ValueError):
             ShiftPlanner(scale=SCALE, **bad)
+
+
+def test_beta_mean_moves_the_target_and_the_weight_peak():
+    """β_mean = 0.25: the two planes' mean 55 m → d_opt = 55 / (333.3·0.25) = 0.66 m (twice the
+    0.33 m of β_mean = 0.5) → shift 7; the weight peaks at 0.25 and is halfway up at 0.175."""
+    planner = ShiftPlanner(1, SCALE, beta_mean=0.25)
+    planner.update(two_planes(), torch.zeros(4, 4, dtype=torch.bool))
+    assert planner.d_opt.tolist() == pytest.approx([0.66])
+    assert planner.plan(AVAILABLE) == [7]
+    w = weight(torch.tensor([0.175, 0.25, 0.575, 0.9], dtype=torch.float64), beta_mean=0.25)
+    assert w.tolist() == pytest.approx([EPSILON + 0.5 * (1 - EPSILON), 1.0, 0.5, 0.0])
+    out = torch.stack([perfect_output(two_planes(), d) for d in (0.1, 0.6)])
+    fused, _ = fuse(out, [0.1, 0.6], SCALE, beta_mean=0.25)
+    assert fused.shape == (4, 4)
+    for bad in (BETA_MIN, BETA_MAX, 1.0):
+        with pytest.raises(ValueError, match="beta_mean"):
+            ShiftPlanner(1, SCALE, beta_mean=bad)
+        with pytest.raises(ValueError, match="beta_mean"):
+            weight(torch.tensor([0.5]), beta_mean=bad)

@@ -70,6 +70,7 @@ def test_nominal_strategy_scores_what_eval_scores(tiny_dataset, trained, tmp_pat
         (["--shifts", "one"], ["--shifts", "integers"]),
         (["--max-shift", "10"], ["--max-shift 10", "--frames"]),
         (["--max-shift", "0"], ["--max-shift", "at least 1"]),
+        (["--beta-mean", "0.95"], ["--beta-mean", "(0.1, 0.9)"]),
     ],
 )
 def test_bad_input_is_one_line_and_writes_nothing(tiny_dataset, trained, tmp_path, flags, words):
