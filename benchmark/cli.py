@@ -148,6 +148,7 @@ def cli() -> None:
     stillbox-bench report runs/*                             one comparison table + figure
     stillbox-bench speed                                     size and speed table
     stillbox-bench infer --ckpt C --input flight.mp4 --speed 9 --out out/  depth of a video
+    stillbox-bench eval-multishift --ckpt C --data SEQ --out R  shift strategies on sequences
     stillbox-bench list                                      registered models
     """
 
