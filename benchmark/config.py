@@ -31,11 +31,13 @@ class TrainConfig:
     ``log_every``: steps between ``steps.csv`` rows; ``cache``: decoded frames in memory (None:
     when they fit).
 
-    Speed switches (results equal within floating-point noise unless said): ``channels_last``:
-    network and inputs in channels-last memory format; ``compile``: ``torch.compile`` the
-    network (a minute or more of compilation first); ``amp``: bfloat16 autocast of the forward
-    pass (None: on CUDA devices that support it, off on the CPU; changes results by bfloat16
-    rounding); ``workers``: DataLoader worker processes assembling batches (None: none on the
+    Speed switches (README "Speed on this machine"; results equal within floating-point noise
+    unless said): ``channels_last``: network and inputs in channels-last memory format (on this
+    2-core CPU 1.12× faster DepthNet steps at batch 256, 0.9× at batch 8: off by default);
+    ``compile``: ``torch.compile`` the network (here 55 s of compilation, then 0.74× at batch 8:
+    off by default); ``amp``: bfloat16 autocast of the forward pass (None: on CUDA devices that
+    support it, off on the CPU, where it changes results by bfloat16 rounding; 1.5× at batch
+    256 here); ``workers``: DataLoader worker processes assembling batches (None: none on the
     CPU, 2 persistent ones with pinned memory on CUDA). CUDA defaults are untested here.
     """
 
@@ -68,7 +70,7 @@ class TrainConfig:
     cache: bool | None = None
     save_predictions: bool = False
     progress: bool = True
-    channels_last: bool = True
+    channels_last: bool = False
     compile: bool = False
     amp: bool | None = None
     workers: int | None = None

@@ -4,11 +4,12 @@ A timed step is what the training loop does per batch: assemble the batch, forwa
 multi-scale loss, backward pass, optimiser step and ``loss.item()``. Batches are real training
 pairs (``PairDataset`` in train mode on the first scenes of a dataset's train split) when a
 dataset is given, else random inputs and targets (then no time goes to data). Each network is
-timed with the training defaults (``levers on``: channels-last memory format, foreach optimiser,
-whole-batch assembly, and ``torch.compile`` when asked) and, with ``baseline``, with every lever
-off (contiguous format, per-parameter optimiser, items assembled one by one and collated, as
-before issue 15), the two alternating step by step in the same process so that both see the same
-load on a shared machine. The median step time is reported, after untimed warm-up steps.
+timed with the training defaults (``levers on``: fused optimiser, whole-batch assembly,
+channels-last memory format when TrainConfig's default says so, ``torch.compile`` when asked)
+and, with ``baseline``, with every lever off (torch's default optimiser, contiguous format,
+items assembled one by one and collated, as before issue 15), the two alternating step by step
+in the same process so that both see the same load on a shared machine. The median step time
+is reported, after untimed warm-up steps.
 """
 
 from __future__ import annotations
@@ -84,7 +85,7 @@ def _variant(name: str, device: torch.device, levers: bool, compile_: bool) -> T
     if channels_last:
         model = model.to(memory_format=torch.channels_last)
     net = torch.compile(model) if levers and compile_ else model
-    opt = make_optimizer(model.parameters(), cfg, foreach=levers)
+    opt = make_optimizer(model.parameters(), cfg, fused=levers)
     return TrainStep(net, opt, device, cfg.loss_weights, cfg.loss_scale, channels_last)
 
 

@@ -104,7 +104,7 @@ def test_epoch_batches_follow_the_sampler(store, workers):
 
 @pytest.mark.parametrize("model", ["depthnet-tiny", "flownets-flow-tiny"])
 def test_levers_keep_the_loss_within_float_noise(model):
-    """Channels-last format and the foreach optimiser: the same losses over a few steps."""
+    """Channels-last format and the fused optimiser: the same losses over a few steps."""
     spec = registry.MODELS[model]
     cfg = TrainConfig(model, "", "")
     if spec.output == "flow":
@@ -119,7 +119,7 @@ def test_levers_keep_the_loss_within_float_noise(model):
         net = spec.build().train()
         if levers:
             net = net.to(memory_format=torch.channels_last)
-        opt = make_optimizer(net.parameters(), cfg, foreach=levers)
+        opt = make_optimizer(net.parameters(), cfg, fused=levers)
         step = TrainStep(net, opt, torch.device("cpu"), cfg.loss_weights, 1.0, levers)
         losses.append([step({"input": x, "target": y}).item() for _ in range(4)])
     np.testing.assert_allclose(losses[1], losses[0], rtol=1e-4)
