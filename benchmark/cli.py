@@ -220,6 +220,19 @@ def list_cmd() -> None:
     f"{','.join(f'{v:g}' for v in DEPTH_RECIPE.depth_range)}; "
     f"{','.join(f'{v:g}' for v in CLAMPED_RECIPE.depth_range)} for depthnet-clamped*]",
 )
+@click.option(
+    "--channels-last",
+    is_flag=True,
+    help="Channels-last memory format (1.12x at batch 256, 0.90x at batch 8 on the 2-core CPU).",
+)
+@click.option(
+    "--compile", "compile_", is_flag=True, help="torch.compile the network (off: slower here)."
+)
+@click.option(
+    "--amp/--no-amp",
+    default=None,
+    help="bfloat16 autocast of the forward pass.  [default: on CUDA only; changes results]",
+)
 @PREDICTIONS_OPTION
 @click.option("--quiet", is_flag=True, help="No progress bars.")
 def run(model: str, data: Path, out: Path | None, **o) -> None:
@@ -278,6 +291,9 @@ def _run_one(model: str, data: Path, out: Path, o: dict) -> dict | None:
         ckpt_every=o.get("ckpt_every"),
         log_every=o.get("log_every"),
         save_predictions=o.get("save_predictions"),
+        channels_last=o.get("channels_last") or None,
+        compile=o.get("compile_") or None,
+        amp=o.get("amp"),
         progress=not o["quiet"],
     )
     try:

@@ -5,11 +5,13 @@ pairs, the batches keep the sampler's order, the training step's levers keep the
 from __future__ import annotations
 
 import csv
+import json
 
 import numpy as np
 import pytest
 import torch
 from conftest import invoke_main
+from test_bench import bench
 from torch.utils.data import DataLoader, default_collate
 
 from benchmark import cli, registry
@@ -164,3 +166,16 @@ def test_bad_speed_train_input_is_a_one_line_error(args, words):
     lines = proc.stderr.strip().splitlines()
     assert proc.returncode == 2 and len(lines) == 1, proc.stderr
     assert all(w in lines[0] for w in words), lines[0]
+
+
+def test_run_flags_reach_the_config(tiny_dataset, tmp_path):
+    """`run --channels-last --amp` trains with them (recorded in config.json); defaults stay off
+    on the CPU (amp None: CUDA only)."""
+    on, off = tmp_path / "on", tmp_path / "off"
+    common = ("--data", tiny_dataset, "--batch-size", 4, "--max-steps", 1, "--quiet")
+    bench("run", "depthnet-tiny", "--out", on, "--channels-last", "--amp", *common)
+    bench("run", "depthnet-tiny", "--out", off, *common)
+    c_on = json.loads((on / "config.json").read_text())
+    c_off = json.loads((off / "config.json").read_text())
+    assert (c_on["channels_last"], c_on["amp"], c_on["compile"]) == (True, True, False)
+    assert (c_off["channels_last"], c_off["amp"], c_off["compile"]) == (False, None, False)
