@@ -109,31 +109,23 @@ def load_weights(model: torch.nn.Module, ck: dict, where: str, name: str) -> Non
 
 def _training_camera(ck: dict, where: str) -> dict:
     """The training camera ``{"width", "height", "fov_deg"}`` (pixels, pixels, horizontal
-    degrees): the checkpoint's ``camera`` entry, else its training dataset's dataset.json."""
-    import json
-
-    from stillbox_gen.camera import fov_from_focal
+    degrees): the checkpoint's ``camera`` entry, else its training dataset's (data.camera_of)."""
+    from .data import DataError, camera_of
 
     cam = ck.get("camera")
-    source = "its 'camera' entry"
     if not isinstance(cam, dict):
         data = (ck.get("config") or {}).get("data")
-        info = Path(str(data)) / "dataset.json"
-        source = f"'{info}'"
         try:
-            cam = json.loads(info.read_text())["config"]["camera"]
-        except (OSError, ValueError, KeyError, TypeError):
+            return camera_of(str(data))
+        except (DataError, KeyError, TypeError):
             raise ValueError(
                 f"{where}: no training camera (the checkpoint has none and its dataset "
                 f"'{data}' is not readable); give --train-fov DEG and --res WxH"
             ) from None
     try:
-        width, height = int(cam["width"]), int(cam["height"])
-        focal = cam.get("focal_px")
-        fov = float(cam["fov_deg"]) if focal is None else fov_from_focal(float(focal), width)
+        return {k: t(cam[k]) for k, t in (("width", int), ("height", int), ("fov_deg", float))}
     except (KeyError, TypeError, ValueError):
-        raise ValueError(f"{where}: the training camera in {source} is incomplete") from None
-    return {"width": width, "height": height, "fov_deg": fov}
+        raise ValueError(f"{where}: the checkpoint's training camera is incomplete") from None
 
 
 def depth_network(

@@ -58,15 +58,14 @@ def _dataset_dir(data: Path) -> Path:
 
 
 def _clamp_option(text: str | None) -> tuple[float, float] | None:
-    """--clamp "LO,HI" -> (LO, HI) metres with 0 <= LO < HI <= MAX_DEPTH (UserError otherwise)."""
+    """--clamp "LO,HI" -> (LO, HI) metres (UserError when not two numbers; the range itself is
+    checked by Trainer.setup, before the run folder exists)."""
     if text is None:
         return None
     try:
         lo, hi = (float(v) for v in text.split(","))
     except ValueError:
         raise UserError(f"--clamp: expected LO,HI in metres (e.g. 10,60), got '{text}'") from None
-    if not 0 <= lo < hi <= MAX_DEPTH:
-        raise UserError(f"--clamp: needs 0 <= LO < HI <= {MAX_DEPTH:g} m, got '{text}'")
     return (lo, hi)
 
 
@@ -257,9 +256,7 @@ def run(model: str, data: Path, out: Path | None, **o) -> None:
     if not o["resume"] and checkpoint_path(out, "last").exists():
         raise UserError(f"--out: '{out}' already holds a run; add --resume or choose another --out")
     _training_options(o)
-    o["depth_range"] = _clamp_option(o.pop("clamp"))
-    if o["shift"] is not None and o["shift"] < 1:
-        raise UserError(f"--shift: must be at least 1, got {o['shift']}")
+    o["depth_range"] = _clamp_option(o.pop("clamp"))  # range and --shift: Trainer.setup
     if o["pretrained"] is not None and not o["pretrained"].is_file():
         raise UserError(f"--pretrained: no such file '{o['pretrained']}'")
     if not trainable and (o["pretrained"] or o["resume"]):

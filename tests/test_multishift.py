@@ -234,8 +234,10 @@ def test_beta_mean_moves_the_target_and_the_weight_peak():
     w = weight(torch.tensor([0.175, 0.25, 0.575, 0.9], dtype=torch.float64), beta_mean=0.25)
     assert w.tolist() == pytest.approx([EPSILON + 0.5 * (1 - EPSILON), 1.0, 0.5, 0.0])
     out = torch.stack([perfect_output(two_planes(), d) for d in (0.1, 0.6)])
-    fused, _ = fuse(out, [0.1, 0.6], SCALE, beta_mean=0.25)
-    assert fused.shape == (4, 4)
+    fused, saturated = fuse(out, [0.1, 0.6], SCALE, beta_mean=0.25)
+    # near plane: both estimates 10 m; far plane: 0.1 m saturates (β = 1, weight 0), 0.6 m gives
+    # β = 0.5 (weight (0.9 − 0.5)/(0.9 − 0.25)) and 100 m
+    assert torch.allclose(fused, two_planes()) and not saturated.any()
     for bad in (BETA_MIN, BETA_MAX, 1.0):
         with pytest.raises(ValueError, match="beta_mean"):
             ShiftPlanner(1, SCALE, beta_mean=bad)
