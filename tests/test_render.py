@@ -357,6 +357,30 @@ def test_sub_pixel_motion_changes_pixels_smoothly(tmp_path):
     assert d_small < 0.3 * d_large, (d_small, d_large)
 
 
+def test_each_frame_of_the_animation_render_gets_its_own_path_seed(tmp_path):
+    """A scene's frames are one animation render; under "path" shading each frame must still
+    get its own Cycles seed (render_seed). Frame 1 of a scene equals frame 0 of a scene whose
+    seed maps to the same Cycles seed, and differs from frame 0 at the same pose."""
+    base = config.load_preset("stillbox")
+    cfg = config.replace(
+        base, camera={"width": 32, "height": 32}, render={"shading": "path", "samples": 2}
+    )
+    spec = scene.sample_scene(cfg, 2)
+    pose = spec.camera.cam2world[0]
+    spec.camera.cam2world = [pose, pose]
+    # render_seed under "path": (seed * 1_000_003 + frame * 7_919) mod the prime 2**31 - 1
+    m = 2**31 - 1
+    twin = scene.sample_scene(cfg, 2)
+    twin.seed = (spec.seed + 7_919 * pow(1_000_003, -1, m)) % m
+    twin.camera.cam2world = [pose]
+    assert (twin.seed * 1_000_003) % m == (spec.seed * 1_000_003 + 7_919) % m
+    render_spec(spec, cfg, tmp_path / "a")
+    render_spec(twin, cfg, tmp_path / "b")
+    frame = lambda d, f: cv2.imread(str(tmp_path / d / formats.rgb_name(2, f)))  # noqa: E731
+    assert not np.array_equal(frame("a", 0), frame("a", 1))  # path noise differs per frame
+    np.testing.assert_array_equal(frame("a", 1), frame("b", 0))
+
+
 def test_default_scenes_have_stillbox_like_depth(default_dataset):
     """Calibrated placement (docs/SCENES.md): most pixels on objects at 5-25 m, not on far walls.
 

@@ -31,40 +31,20 @@ _PATTERN_NODES = {
 _UNIT_SCALE = {"wave": 0.628, "gradient_stripes": 0.628, "magic": 1.256}
 
 
+# Materials are copied from per-process templates, one per node structure, named with this
+# prefix and kept across scenes: Material.copy() is about 50x faster than building the nodes.
+TEMPLATE_PREFIX = "~template"
+
+
 def clear_scene() -> None:
-    """Remove the previous scene's data; render settings and loaded photo textures stay."""
+    """Remove the previous scene's data; render settings, material templates and loaded photo
+    textures stay."""
     data = bpy.data
-    doomed = [*data.objects, *data.meshes, *data.materials, *data.lights, *data.cameras]
+    materials = [m for m in data.materials if not m.name.startswith(TEMPLATE_PREFIX)]
+    doomed = [*data.objects, *data.meshes, *materials, *data.lights, *data.cameras]
     doomed += [*data.worlds, *data.actions]
     if doomed:
         data.batch_remove(doomed)
-
-
-def _pattern(nodes, pattern: str, detail: float):
-    node_type, output = _PATTERN_NODES[pattern]
-    tex = nodes.new(node_type)
-    if "Scale" in tex.inputs:  # the Mapping node carries the scale (features per metre)
-        tex.inputs["Scale"].default_value = _UNIT_SCALE.get(pattern, 1.0)
-    if pattern == "noise":
-        tex.inputs["Detail"].default_value = 2.0 * detail
-    elif pattern == "voronoi":
-        tex.inputs["Randomness"].default_value = 0.5 + 0.5 * detail
-    elif pattern == "wave":
-        tex.inputs["Distortion"].default_value = 4.0 * detail
-        tex.inputs["Detail"].default_value = 1.0
-    elif pattern == "gradient_stripes":
-        tex.wave_profile = "SAW"
-        tex.inputs["Distortion"].default_value = 2.0 * detail
-    elif pattern == "checker":
-        tex.inputs["Color1"].default_value = (1, 1, 1, 1)
-        tex.inputs["Color2"].default_value = (0, 0, 0, 1)
-    elif pattern == "brick":
-        tex.inputs["Brick Width"].default_value = 1.0
-        tex.inputs["Row Height"].default_value = 0.5
-        tex.inputs["Mortar Size"].default_value = 0.05 + 0.07 * detail
-    elif pattern == "magic":
-        tex.turbulence_depth = 1 + int(detail * 2)
-    return tex, output
 
 
 def make_material(
@@ -77,32 +57,139 @@ def make_material(
     ``footprint`` = (typical distance of the surface in metres, focal length in pixels) sets the
     resolution of a photo texture.
     """
+    emits = ambient is not None and spec["metallic"] == 0  # metals only reflect
+    structure = (spec["kind"], spec["pattern"], len(spec["positions"]), emits, ambient is not None)
+    template_name = f"{TEMPLATE_PREFIX} " + " ".join(map(str, structure))
+    template = bpy.data.materials.get(template_name) or _material_nodes(template_name, *structure)
+    mat = template.copy()
+    mat.name = name
+    _set_material_values(mat.node_tree.nodes, spec, textures_dir, footprint, ambient)
+    return mat
+
+
+def _material_nodes(name: str, kind: str, pattern, stops: int, emits: bool, gated: bool):
+    """A material with the nodes and links of one structure (values are set per material by
+    _set_material_values). Nodes are named for that: bsdf, mapping, texture, tint, ramp, ambient."""
     mat = bpy.data.materials.new(name)
     nodes, links = mat.node_tree.nodes, mat.node_tree.links
     bsdf = nodes.get("Principled BSDF") or nodes.new("ShaderNodeBsdfPrincipled")
-    bsdf.inputs["Roughness"].default_value = spec["roughness"]
-    bsdf.inputs["Metallic"].default_value = spec["metallic"]
-    colour = _base_colour(nodes, links, spec, textures_dir, footprint)
-    if colour is None:
-        bsdf.inputs["Base Color"].default_value = (*spec["colors"][0], 1.0)
-    else:
+    bsdf.name = "bsdf"
+    colour = None
+    if kind != "plain":
+        coords = nodes.new("ShaderNodeTexCoord")
+        mapping = nodes.new("ShaderNodeMapping")
+        mapping.name = "mapping"
+        links.new(coords.outputs["Object"], mapping.inputs["Vector"])
+        if kind == "image":
+            tex = nodes.new("ShaderNodeTexImage")
+            tex.projection = "BOX"
+            tex.projection_blend = 0.2
+            tint = _multiply(nodes, links, tex.outputs["Color"], "tint")
+            colour = tint.outputs["Result"]
+        else:
+            tex, output = _pattern_node(nodes, pattern)
+            ramp = nodes.new("ShaderNodeValToRGB")
+            ramp.name = "ramp"
+            while len(ramp.color_ramp.elements) < stops:
+                ramp.color_ramp.elements.new(0.5)
+            links.new(tex.outputs[output], ramp.inputs["Fac"])
+            colour = ramp.outputs["Color"]
+        tex.name = "texture"
+        links.new(mapping.outputs["Vector"], tex.inputs["Vector"])
         links.new(colour, bsdf.inputs["Base Color"])
-    if ambient is not None and spec["metallic"] == 0:  # metals only reflect
+    if emits:
         mat.cycles.emission_sampling = "NONE"  # no light-tree build; same image
         bsdf.inputs["Emission Strength"].default_value = 1.0
-        if colour is None:
-            rgb = [c * a for c, a in zip(spec["colors"][0], ambient, strict=True)]
-            bsdf.inputs["Emission Color"].default_value = (*rgb, 1.0)
-        else:
-            mix = nodes.new("ShaderNodeMix")
-            mix.data_type, mix.blend_type = "RGBA", "MULTIPLY"
-            mix.inputs["Factor"].default_value = 1.0
-            links.new(colour, mix.inputs["A"])
-            mix.inputs["B"].default_value = (*ambient, 1.0)
-            links.new(mix.outputs["Result"], bsdf.inputs["Emission Color"])
-    if ambient is not None:
+        if colour is not None:
+            tinted = _multiply(nodes, links, colour, "ambient")
+            links.new(tinted.outputs["Result"], bsdf.inputs["Emission Color"])
+    if gated:
         _only_camera_and_mirror_rays(nodes, links, bsdf)
     return mat
+
+
+def _multiply(nodes, links, colour, name: str):
+    """A colour Mix node (multiply, factor 1) named ``name`` with ``colour`` as its A input."""
+    mix = nodes.new("ShaderNodeMix")
+    mix.name = name
+    mix.data_type, mix.blend_type = "RGBA", "MULTIPLY"
+    mix.inputs["Factor"].default_value = 1.0
+    links.new(colour, mix.inputs["A"])
+    return mix
+
+
+def _set_material_values(nodes, spec: dict, textures_dir, footprint, ambient) -> None:
+    """Set the values of a MaterialSpec on a copy of its structure's template (make_material)."""
+    bsdf = nodes["bsdf"]
+    bsdf.inputs["Roughness"].default_value = spec["roughness"]
+    bsdf.inputs["Metallic"].default_value = spec["metallic"]
+    emits = ambient is not None and spec["metallic"] == 0
+    if spec["kind"] == "plain":
+        bsdf.inputs["Base Color"].default_value = (*spec["colors"][0], 1.0)
+        if emits:
+            rgb = [c * a for c, a in zip(spec["colors"][0], ambient, strict=True)]
+            bsdf.inputs["Emission Color"].default_value = (*rgb, 1.0)
+        return
+    mapping = nodes["mapping"]
+    mapping.inputs["Location"].default_value = spec["offset"]
+    mapping.inputs["Rotation"].default_value = spec["rotation"]
+    mapping.inputs["Scale"].default_value = (spec["scale"],) * 3
+    tex = nodes["texture"]
+    if spec["kind"] == "image":
+        tex.image = _photo(spec["image"], textures_dir, 1.0 / spec["scale"], footprint)
+        nodes["tint"].inputs["B"].default_value = (*spec["colors"][0], 1.0)
+    else:
+        _pattern_values(tex, spec["pattern"], spec["detail"])
+        _ramp_stops(nodes["ramp"].color_ramp.elements, spec["positions"], spec["colors"])
+    if emits:
+        nodes["ambient"].inputs["B"].default_value = (*ambient, 1.0)
+
+
+def _ramp_stops(elements, positions: list[float], colours: list) -> None:
+    """Move the ramp's stops to ``positions`` (ascending) with ``colours``. Blender keeps stops
+    sorted by position, so a stop must not pass its neighbours while it moves: stops moving down
+    are moved first, lowest first, then stops moving up, highest first."""
+    n = len(positions)
+    down = [i for i in range(n) if positions[i] < elements[i].position]
+    up = [i for i in reversed(range(n)) if i not in down]
+    for i in down + up:
+        elements[i].position = positions[i]
+        elements[i].color = (*colours[i], 1.0)
+
+
+def _pattern_node(nodes, pattern: str):
+    """The texture node of a pattern, with its detail-independent settings; (node, output)."""
+    node_type, output = _PATTERN_NODES[pattern]
+    tex = nodes.new(node_type)
+    if "Scale" in tex.inputs:  # the Mapping node carries the scale (features per metre)
+        tex.inputs["Scale"].default_value = _UNIT_SCALE.get(pattern, 1.0)
+    if pattern == "wave":
+        tex.inputs["Detail"].default_value = 1.0
+    elif pattern == "gradient_stripes":
+        tex.wave_profile = "SAW"
+    elif pattern == "checker":
+        tex.inputs["Color1"].default_value = (1, 1, 1, 1)
+        tex.inputs["Color2"].default_value = (0, 0, 0, 1)
+    elif pattern == "brick":
+        tex.inputs["Brick Width"].default_value = 1.0
+        tex.inputs["Row Height"].default_value = 0.5
+    return tex, output
+
+
+def _pattern_values(tex, pattern: str, detail: float) -> None:
+    """The settings of a pattern's texture node that follow MaterialSpec.detail (0-1)."""
+    if pattern == "noise":
+        tex.inputs["Detail"].default_value = 2.0 * detail
+    elif pattern == "voronoi":
+        tex.inputs["Randomness"].default_value = 0.5 + 0.5 * detail
+    elif pattern == "wave":
+        tex.inputs["Distortion"].default_value = 4.0 * detail
+    elif pattern == "gradient_stripes":
+        tex.inputs["Distortion"].default_value = 2.0 * detail
+    elif pattern == "brick":
+        tex.inputs["Mortar Size"].default_value = 0.05 + 0.07 * detail
+    elif pattern == "magic":
+        tex.turbulence_depth = 1 + int(detail * 2)
 
 
 def _only_camera_and_mirror_rays(nodes, links, bsdf) -> None:
@@ -126,42 +213,6 @@ def _only_camera_and_mirror_rays(nodes, links, bsdf) -> None:
     links.new(black.outputs["Emission"], mix.inputs[1])
     links.new(bsdf.outputs["BSDF"], mix.inputs[2])
     links.new(mix.outputs["Shader"], output.inputs["Surface"])
-
-
-def _base_colour(nodes, links, spec: dict, textures_dir: str | None, footprint):
-    """Output socket of the material's colour pattern, or None for a plain colour."""
-    if spec["kind"] == "plain":
-        return None
-    coords = nodes.new("ShaderNodeTexCoord")
-    mapping = nodes.new("ShaderNodeMapping")
-    mapping.inputs["Location"].default_value = spec["offset"]
-    mapping.inputs["Rotation"].default_value = spec["rotation"]
-    mapping.inputs["Scale"].default_value = (spec["scale"],) * 3
-    links.new(coords.outputs["Object"], mapping.inputs["Vector"])
-    if spec["kind"] == "image":
-        tex = nodes.new("ShaderNodeTexImage")
-        tex.image = _photo(spec["image"], textures_dir, 1.0 / spec["scale"], footprint)
-        tex.projection = "BOX"
-        tex.projection_blend = 0.2
-        links.new(mapping.outputs["Vector"], tex.inputs["Vector"])
-        tint = nodes.new("ShaderNodeMix")
-        tint.data_type = "RGBA"
-        tint.blend_type = "MULTIPLY"
-        tint.inputs["Factor"].default_value = 1.0
-        links.new(tex.outputs["Color"], tint.inputs["A"])
-        tint.inputs["B"].default_value = (*spec["colors"][0], 1.0)
-        return tint.outputs["Result"]
-    tex, output = _pattern(nodes, spec["pattern"], spec["detail"])
-    links.new(mapping.outputs["Vector"], tex.inputs["Vector"])
-    ramp = nodes.new("ShaderNodeValToRGB")
-    elements = ramp.color_ramp.elements
-    while len(elements) < len(spec["colors"]):
-        elements.new(0.5)
-    for el, colour, pos in zip(elements, spec["colors"], spec["positions"], strict=True):
-        el.position = pos
-        el.color = (*colour, 1.0)
-    links.new(tex.outputs[output], ramp.inputs["Fac"])
-    return ramp.outputs["Color"]
 
 
 _PHOTOS: dict = {}  # (textures_dir, name) -> full-resolution linear RGB, per process

@@ -1,8 +1,11 @@
 """Worker-process side of rendering: one-time Cycles set-up, then one call per scene.
 
 A worker process imports bpy once (about 0.75 s) and renders many scenes; the pool replaces it
-after ``recycle_after`` scenes to bound memory. Each frame is rendered as a still (persistent data
-on) to a temporary multilayer EXR, read back, and written as 8-bit sRGB + float32 depth.
+after ``recycle_after`` scenes to bound memory. The frames of a scene are rendered by one
+animation render (persistent data on: the scene is synced once, then only the camera moves; a
+frame-change handler sets each frame's pose and seed) to temporary multilayer EXRs, read back and
+written as 8-bit sRGB + float32 depth. The pixels are those of one still render per frame (tested),
+about 10 % sooner at 64 px.
 """
 
 from __future__ import annotations
@@ -77,8 +80,25 @@ def init_worker(
     img.media_type = "MULTI_LAYER_IMAGE"
     img.file_format = "OPEN_EXR_MULTILAYER"
     img.color_depth = "16"  # the Z pass stays float32 in half-float EXRs
-    img.exr_codec = "ZIP"
-    _STATE.update(textures_dir=textures_dir, shading=render["shading"], scenes=0)
+    img.exr_codec = "NONE"  # temporary files, read back at once: compressing them is wasted time
+    _STATE.update(textures_dir=textures_dir, shading=render["shading"], scenes=0, job=None)
+    handlers = bpy.app.handlers.frame_change_pre
+    if _pose_frame not in handlers:
+        handlers.append(_pose_frame)
+
+
+@bpy.app.handlers.persistent
+def _pose_frame(scene, depsgraph=None) -> None:
+    """Frame-change handler: the camera pose and Cycles seed of the frame being rendered."""
+    job = _STATE.get("job")
+    if job is None:
+        return
+    f = scene.frame_current
+    build.set_camera_pose(job["camera"], job["poses"][f])
+    seed = render_seed(job["seed"], f, _STATE["shading"])
+    if scene.cycles.seed != seed:
+        scene.cycles.seed = seed
+        scene.update_tag()  # an animation render re-reads the seed only from a tagged scene
 
 
 def render_seed(scene_seed: int, frame: int, shading: str) -> int:
@@ -126,12 +146,16 @@ def render_scene(spec: dict, out_dir: str, image_format: str, legacy: bool) -> d
         cv2.IMWRITE_JPEG_SAMPLING_FACTOR,
         cv2.IMWRITE_JPEG_SAMPLING_FACTOR_444,
     ]
-    for f, pose in enumerate(spec["camera"]["cam2world"]):
-        build.set_camera_pose(cam, pose)
-        scene.cycles.seed = render_seed(spec["seed"], f, _STATE["shading"])
-        tmp = out / f"_render_{f:02d}.exr"
-        scene.render.filepath = str(tmp)
-        bpy.ops.render.render(write_still=True)
+    poses = spec["camera"]["cam2world"]
+    scene.frame_start, scene.frame_end = 0, len(poses) - 1
+    scene.render.filepath = str(out / "_render_##")
+    _STATE["job"] = {"camera": cam, "poses": poses, "seed": spec["seed"]}
+    try:
+        bpy.ops.render.render(animation=True)
+    finally:
+        _STATE["job"] = None
+    for f in range(len(poses)):
+        tmp = Path(scene.render.frame_path(frame=f))
         rgb, depth = _channels(tmp)
         tmp.unlink()
         bgr = formats.linear_to_srgb8(rgb)[..., ::-1]
@@ -146,7 +170,7 @@ def render_scene(spec: dict, out_dir: str, image_format: str, legacy: bool) -> d
         "index": spec["index"],
         "seconds": time.perf_counter() - t0,
         "build_seconds": t_build,
-        "frames": len(spec["camera"]["cam2world"]),
+        "frames": len(poses),
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
         "pid": os.getpid(),
     }
