@@ -4,8 +4,9 @@ A worker process imports bpy once (about 0.75 s) and renders many scenes; the po
 after ``recycle_after`` scenes to bound memory. The frames of a scene are rendered by one
 animation render (persistent data on: the scene is synced once, then only the camera moves; a
 frame-change handler sets each frame's pose and seed) to temporary multilayer EXRs, read back and
-written as 8-bit sRGB + float32 depth. The pixels are those of one still render per frame (tested),
-about 10 % sooner at 64 px.
+written as 8-bit sRGB + float32 depth. The files are byte-identical to those of one still render
+per frame (compared file by file when this replaced the stills), and a 64 px worker spends about
+10 % less time per frame.
 """
 
 from __future__ import annotations
