@@ -17,10 +17,6 @@ from pathlib import Path, PurePosixPath
 
 import numpy as np
 
-# Layout names, also reachable here for callers of their former place (blender/render.py and
-# tests/test_render.py, test_golden.py); they are defined in stillbox_gen.layout.
-from .layout import chunk_name, depth_name, local_index, rgb_name, scene_files  # noqa: F401
-
 FORMAT_VERSION = 1
 NO_SURFACE_DEPTH = 1e10  # what Cycles writes where a ray hits nothing within max_distance
 DEPTH_CONVENTION = (

@@ -24,7 +24,7 @@ import torch
 from conftest import run_cli
 
 from benchmark import metrics
-from stillbox_gen import bench, formats
+from stillbox_gen import bench, formats, layout
 
 GOLDEN = Path(__file__).parent / "golden"
 UPDATE = os.environ.get("STILLBOX_UPDATE_GOLDEN") == "1"
@@ -73,7 +73,7 @@ def _normalise(obj, photos: str):
 def _without_checksums(record: dict) -> dict:
     """A scene record without its files' SHA-256: they hash the frames' bytes, which may differ
     in the last bits across CPUs (the frames themselves are compared by PSNR)."""
-    assert set(record.get("sha256", {})) == set(formats.scene_files(record))
+    assert set(record.get("sha256", {})) == set(layout.scene_files(record))
     return {k: v for k, v in record.items() if k != "sha256"}
 
 
@@ -109,7 +109,7 @@ def test_frames_and_depth_match_golden(golden_dataset):
     problems = []
     for k in range(3):
         for f in FRAMES:
-            rgb_name, depth_name = formats.rgb_name(k, f), formats.depth_name(k, f)
+            rgb_name, depth_name = layout.rgb_name(k, f), layout.depth_name(k, f)
             rgb = cv2.imread(str(golden_dataset / "0" / rgb_name))
             depth = formats.read_depth_exr(golden_dataset / "0" / depth_name)
             if UPDATE:
@@ -140,7 +140,7 @@ def test_golden_dataset_validates(golden_dataset):
 
 def test_metrics_on_fixed_predictions_equal_golden_numbers():
     """Ground truth: the golden depth files; predictions: a fixed distortion of them."""
-    gts = [formats.read_depth_exr(GOLDEN / "frames" / formats.depth_name(k, 0)) for k in range(3)]
+    gts = [formats.read_depth_exr(GOLDEN / "frames" / layout.depth_name(k, 0)) for k in range(3)]
     gt = torch.from_numpy(np.stack(gts)).double()
     h, w = gt.shape[-2:]
     yy, xx = torch.meshgrid(torch.arange(h), torch.arange(w), indexing="ij")

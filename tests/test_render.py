@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 from conftest import CLI, assert_user_error, file_tree, invoke_cli, run_cli
 
-from stillbox_gen import camera, config, formats, generate, scene
+from stillbox_gen import camera, config, formats, generate, layout, scene
 from stillbox_gen.manifest import read_manifest
 
 pytestmark = pytest.mark.render
@@ -61,7 +61,7 @@ def test_wall_facing_camera_has_constant_depth_equal_to_its_distance(tmp_path):
     cfg, spec = wall_scene(64, 48, K, wall_z=12.0, step=0.5, frames=3)
     render_spec(spec, cfg, tmp_path)
     for f in range(3):
-        depth = formats.read_depth_exr(tmp_path / formats.depth_name(0, f))
+        depth = formats.read_depth_exr(tmp_path / layout.depth_name(0, f))
         assert depth.shape == (48, 64)
         np.testing.assert_allclose(depth, 12.0 - 0.5 * f, rtol=1e-5)
 
@@ -76,7 +76,7 @@ def test_rendered_sphere_matches_pinhole_projection_of_K(tmp_path):
         scene.PrimitiveSpec("sphere", [2 * radius] * 3, centre.tolist(), [1, 0, 0, 0], material)
     ]
     render_spec(spec, cfg, tmp_path)
-    depth = formats.read_depth_exr(tmp_path / formats.depth_name(0, 0))
+    depth = formats.read_depth_exr(tmp_path / layout.depth_name(0, 0))
     # analytic ray-sphere intersection for every pixel
     u, v = np.meshgrid(np.arange(72.0), np.arange(48.0))
     rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], -1)
@@ -97,9 +97,9 @@ def test_rendered_sphere_matches_pinhole_projection_of_K(tmp_path):
 
 
 def load_scene(root: Path, index: int):
-    chunk = root / formats.chunk_name(index)
+    chunk = root / layout.chunk_name(index)
     meta = json.loads((chunk / "metadata.json").read_text())
-    rec = meta["scenes"][formats.local_index(index)]
+    rec = meta["scenes"][layout.local_index(index)]
     frames = [cv2.imread(str(chunk / n)).astype(np.float32) for n in rec["rgb"]]
     depths = [formats.read_depth_exr(chunk / n) for n in rec["depth_exr"]]
     return rec, frames, depths
@@ -324,8 +324,8 @@ def _render_pair(tmp_path: Path, samples: int, step: float, seed_offset: int = 0
     spec.camera.cam2world = [c2w[0].tolist(), moved.tolist()]
     out = tmp_path / f"{samples}-{step}-{seed_offset}"
     render_spec(spec, cfg, out)
-    rgb = [cv2.imread(str(out / formats.rgb_name(2, f))).astype(np.float64) for f in (0, 1)]
-    depth = [formats.read_depth_exr(out / formats.depth_name(2, f)) for f in (0, 1)]
+    rgb = [cv2.imread(str(out / layout.rgb_name(2, f))).astype(np.float64) for f in (0, 1)]
+    depth = [formats.read_depth_exr(out / layout.depth_name(2, f)) for f in (0, 1)]
     return rgb, depth
 
 
@@ -376,7 +376,7 @@ def test_each_frame_of_the_animation_render_gets_its_own_path_seed(tmp_path):
     assert (twin.seed * 1_000_003) % m == (spec.seed * 1_000_003 + 7_919) % m
     render_spec(spec, cfg, tmp_path / "a")
     render_spec(twin, cfg, tmp_path / "b")
-    frame = lambda d, f: cv2.imread(str(tmp_path / d / formats.rgb_name(2, f)))  # noqa: E731
+    frame = lambda d, f: cv2.imread(str(tmp_path / d / layout.rgb_name(2, f)))  # noqa: E731
     assert not np.array_equal(frame("a", 0), frame("a", 1))  # path noise differs per frame
     np.testing.assert_array_equal(frame("a", 1), frame("b", 0))
 

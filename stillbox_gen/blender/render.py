@@ -20,7 +20,7 @@ import bpy
 import cv2
 import numpy as np
 
-from .. import config, formats
+from .. import config, formats, layout
 from . import build, devices
 
 _STATE: dict = {}
@@ -139,7 +139,7 @@ def render_scene(spec: dict, out_dir: str, image_format: str, legacy: bool) -> d
     build.clear_scene()
     cam = build.build_scene(spec, _STATE["textures_dir"], _STATE["shading"])
     t_build = time.perf_counter() - t0
-    local = formats.local_index(spec["index"])
+    local = layout.local_index(spec["index"])
     # full-resolution chroma (4:4:4): 4:2:0 JPEGs differ from the PNGs by about 6/255 on average
     params = [
         cv2.IMWRITE_JPEG_QUALITY,
@@ -160,12 +160,12 @@ def render_scene(spec: dict, out_dir: str, image_format: str, legacy: bool) -> d
         rgb, depth = _channels(tmp)
         tmp.unlink()
         bgr = formats.linear_to_srgb8(rgb)[..., ::-1]
-        cv2.imwrite(str(out / formats.rgb_name(local, f, image_format)), bgr, params)
-        formats.write_depth_exr(out / formats.depth_name(local, f), depth)
+        cv2.imwrite(str(out / layout.rgb_name(local, f, image_format)), bgr, params)
+        formats.write_depth_exr(out / layout.depth_name(local, f), depth)
         if legacy:
             if image_format != "jpg":
-                cv2.imwrite(str(out / formats.rgb_name(local, f, "jpg")), bgr, params)
-            np.save(out / formats.depth_name(local, f, "npy"), depth)
+                cv2.imwrite(str(out / layout.rgb_name(local, f, "jpg")), bgr, params)
+            np.save(out / layout.depth_name(local, f, "npy"), depth)
     _STATE["scenes"] += 1
     return {
         "index": spec["index"],
