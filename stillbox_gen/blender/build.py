@@ -32,7 +32,8 @@ _UNIT_SCALE = {"wave": 0.628, "gradient_stripes": 0.628, "magic": 1.256}
 
 
 # Materials are copied from per-process templates, one per node structure, named with this
-# prefix and kept across scenes: Material.copy() is about 50x faster than building the nodes.
+# prefix and kept across scenes: Material.copy() takes about 0.04 ms where creating and linking
+# the nodes from Python took 2-4 ms, about 20 materials per scene.
 TEMPLATE_PREFIX = "~template"
 
 
