@@ -15,6 +15,8 @@ polyhedra of the curved shapes, so a point the function calls outside is outside
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 
@@ -73,49 +75,57 @@ def _grid_faces(rows: int, cols: int, wrap_rows: bool) -> list[tuple[int, ...]]:
     return faces
 
 
+@functools.cache
+def _faces(kind: str, n: int) -> tuple[tuple[int, ...], ...]:
+    """Faces of a primitive's mesh with ``n`` segments (they do not depend on its dimensions)."""
+    if kind in ("cube", "slab"):
+        return ((0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3))
+    if kind == "sphere":
+        rings = n // 2
+        body = [tuple(1 + k for k in f) for f in _grid_faces(rings - 1, n, False)]
+        last, top_pole = 1 + (rings - 2) * n, 2 + (rings - 1) * n - 1
+        bottom = [(0, 1 + (j + 1) % n, 1 + j) for j in range(n)]
+        top = [(top_pole, last + j, last + (j + 1) % n) for j in range(n)]
+        return tuple(bottom + body + top)
+    if kind == "cylinder":
+        sides = [(j, (j + 1) % n, n + (j + 1) % n, n + j) for j in range(n)]
+        return tuple(sides + [tuple(range(n - 1, -1, -1)), tuple(range(n, 2 * n))])
+    if kind == "cone":
+        return tuple([(j, (j + 1) % n, n) for j in range(n)] + [tuple(range(n - 1, -1, -1))])
+    if kind == "torus":
+        return tuple((a, d, c, b) for a, b, c, d in _grid_faces(n, max(8, n // 2), True))
+    raise ValueError(f"unknown primitive kind {kind!r}")
+
+
 def mesh(kind: str, dimensions, segments: int = 32) -> tuple[np.ndarray, list[tuple[int, ...]]]:
     """Vertices (N, 3) in metres and polygon faces (outward, counter-clockwise) of a primitive."""
     dx, dy, dz = (float(v) for v in dimensions)
     n = segments
+    faces = list(_faces(kind, n))
     ang = np.linspace(0, 2 * np.pi, n, endpoint=False)
     ring = np.stack([np.cos(ang), np.sin(ang)], axis=-1)
     if kind in ("cube", "slab"):
         v = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], float)
-        faces = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
         return v * np.array([dx, dy, dz]) / 2, faces
     if kind == "sphere":
-        rings = n // 2
-        theta = np.linspace(0, np.pi, rings + 1)[1:-1]
-        v = [[0, 0, -1]]
-        for t in theta[::-1]:
-            v += [[np.sin(t) * c, np.sin(t) * s, np.cos(t)] for c, s in ring]
-        v += [[0, 0, 1]]
-        v = np.array(v) * dx / 2
-        body = [tuple(1 + k for k in f) for f in _grid_faces(rings - 1, n, False)]
-        last = 1 + (rings - 2) * n
-        bottom = [(0, 1 + (j + 1) % n, 1 + j) for j in range(n)]
-        top = [(len(v) - 1, last + j, last + (j + 1) % n) for j in range(n)]
-        return v, bottom + body + top
+        theta = np.linspace(0, np.pi, n // 2 + 1)[1:-1][::-1]
+        sin_t = np.sin(theta)[:, None]
+        rings = np.stack(
+            [sin_t * ring[:, 0], sin_t * ring[:, 1], np.repeat(np.cos(theta)[:, None], n, 1)], -1
+        )
+        v = np.vstack([[[0.0, 0.0, -1.0]], rings.reshape(-1, 3), [[0.0, 0.0, 1.0]]])
+        return v * dx / 2, faces
     if kind in ("cylinder", "cone"):
         r, h = dx / 2, dz
         base = np.column_stack([ring * r, np.full(n, -h / 2)])
         if kind == "cylinder":
-            top = np.column_stack([ring * r, np.full(n, h / 2)])
-            v = np.vstack([base, top])
-            sides = [(j, (j + 1) % n, n + (j + 1) % n, n + j) for j in range(n)]
-            return v, sides + [tuple(range(n - 1, -1, -1)), tuple(range(n, 2 * n))]
-        v = np.vstack([base, [[0, 0, h / 2]]])
-        sides = [(j, (j + 1) % n, n) for j in range(n)]
-        return v, sides + [tuple(range(n - 1, -1, -1))]
+            return np.vstack([base, np.column_stack([ring * r, np.full(n, h / 2)])]), faces
+        return np.vstack([base, [[0, 0, h / 2]]]), faces
     if kind == "torus":
         major, minor = (dx - dz) / 2, dz / 2
-        m = max(8, n // 2)
-        phi = np.linspace(0, 2 * np.pi, m, endpoint=False)
-        v = [
-            [(major + minor * np.cos(p)) * c, (major + minor * np.cos(p)) * s, minor * np.sin(p)]
-            for c, s in ring
-            for p in phi
-        ]
-        faces = [(a, d, c, b) for a, b, c, d in _grid_faces(n, m, True)]
-        return np.array(v), faces
+        phi = np.linspace(0, 2 * np.pi, max(8, n // 2), endpoint=False)
+        arm = (major + minor * np.cos(phi))[None, :]  # distance from the axis, per minor angle
+        z = np.broadcast_to(minor * np.sin(phi), (n, len(phi)))
+        v = np.stack([arm * ring[:, :1], arm * ring[:, 1:], z], -1)
+        return v.reshape(-1, 3), faces
     raise ValueError(f"unknown primitive kind {kind!r}")
