@@ -64,7 +64,8 @@ def make_material(
     template = bpy.data.materials.get(template_name) or _material_nodes(template_name, *structure)
     mat = template.copy()
     mat.name = name
-    _set_material_values(mat.node_tree.nodes, spec, textures_dir, footprint, ambient)
+    emission = ambient if emits else None
+    _set_material_values(mat.node_tree.nodes, spec, textures_dir, footprint, emission)
     return mat
 
 
@@ -119,16 +120,16 @@ def _multiply(nodes, links, colour, name: str):
     return mix
 
 
-def _set_material_values(nodes, spec: dict, textures_dir, footprint, ambient) -> None:
-    """Set the values of a MaterialSpec on a copy of its structure's template (make_material)."""
+def _set_material_values(nodes, spec: dict, textures_dir, footprint, emission) -> None:
+    """Set the values of a MaterialSpec on a copy of its structure's template (make_material);
+    ``emission``: the ambient colour of an emitting surface, None for the others."""
     bsdf = nodes["bsdf"]
     bsdf.inputs["Roughness"].default_value = spec["roughness"]
     bsdf.inputs["Metallic"].default_value = spec["metallic"]
-    emits = ambient is not None and spec["metallic"] == 0
     if spec["kind"] == "plain":
         bsdf.inputs["Base Color"].default_value = (*spec["colors"][0], 1.0)
-        if emits:
-            rgb = [c * a for c, a in zip(spec["colors"][0], ambient, strict=True)]
+        if emission is not None:
+            rgb = [c * a for c, a in zip(spec["colors"][0], emission, strict=True)]
             bsdf.inputs["Emission Color"].default_value = (*rgb, 1.0)
         return
     mapping = nodes["mapping"]
@@ -142,8 +143,8 @@ def _set_material_values(nodes, spec: dict, textures_dir, footprint, ambient) ->
     else:
         _pattern_values(tex, spec["pattern"], spec["detail"])
         _ramp_stops(nodes["ramp"].color_ramp.elements, spec["positions"], spec["colors"])
-    if emits:
-        nodes["ambient"].inputs["B"].default_value = (*ambient, 1.0)
+    if emission is not None:
+        nodes["ambient"].inputs["B"].default_value = (*emission, 1.0)
 
 
 def _ramp_stops(elements, positions: list[float], colours: list) -> None:
