@@ -381,6 +381,20 @@ def test_each_frame_of_the_animation_render_gets_its_own_path_seed(tmp_path):
     np.testing.assert_array_equal(frame("a", 1), frame("b", 0))
 
 
+def test_a_one_frame_scene_renders_without_frame_handler_errors(tmp_path, capfd):
+    """At its end an animation render restores the scene's current frame (1 by default), a
+    frame the job of a one-frame scene (e.g. a stats --flicker re-render) does not have."""
+    base = config.load_preset("stillbox")
+    cfg = config.replace(base, camera={"width": 16, "height": 16})
+    spec = scene.sample_scene(cfg, 0)
+    spec.camera.cam2world = spec.camera.cam2world[:1]
+    capfd.readouterr()
+    render_spec(spec, cfg, tmp_path)
+    assert "Error" not in capfd.readouterr().err
+    assert (tmp_path / layout.rgb_name(0, 0)).exists()
+    assert not (tmp_path / layout.rgb_name(0, 1)).exists()
+
+
 def test_default_scenes_have_stillbox_like_depth(default_dataset):
     """Calibrated placement (docs/SCENES.md): most pixels on objects at 5-25 m, not on far walls.
 

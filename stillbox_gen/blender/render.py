@@ -92,9 +92,10 @@ def init_worker(
 def _pose_frame(scene, depsgraph=None) -> None:
     """Frame-change handler: the camera pose and Cycles seed of the frame being rendered."""
     job = _STATE.get("job")
-    if job is None:
-        return
     f = scene.frame_current
+    # the render also restores the scene's previous current frame at its end: not a job frame
+    if job is None or not 0 <= f < len(job["poses"]):
+        return
     build.set_camera_pose(job["camera"], job["poses"][f])
     seed = render_seed(job["seed"], f, _STATE["shading"])
     if scene.cycles.seed != seed:
