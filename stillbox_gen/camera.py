@@ -9,6 +9,9 @@ Conventions used everywhere in this project:
 * Quaternions are [w, x, y, z], unit norm, w >= 0.
 * ``cam2world`` maps camera (OpenCV) coordinates to world coordinates; ``world2cam`` is its inverse.
 
+Everything that feeds a scene description or a record (rotations, poses, their inverses, focal
+lengths) uses :mod:`portable` arithmetic, so it has the same bits on every machine.
+
 Blender's camera looks down its local -Z with +Y up, so
 ``cam2world_opencv = matrix_world_blender @ diag(1, -1, -1, 1)``.
 """
@@ -19,8 +22,7 @@ import math
 
 import numpy as np
 
-#: Flips between OpenCV camera axes and Blender camera axes (its own inverse).
-CV_TO_BLENDER = np.diag([1.0, -1.0, -1.0])
+from . import portable
 
 #: Sensor width (mm) given to Blender; only the ratio lens / sensor width matters.
 BLENDER_SENSOR_WIDTH_MM = 36.0
@@ -28,7 +30,7 @@ BLENDER_SENSOR_WIDTH_MM = 36.0
 
 def focal_from_fov(fov_deg: float, width: int) -> float:
     """Focal length in pixels for a horizontal field of view in degrees: f = W / (2 tan(fov/2))."""
-    return width / (2.0 * math.tan(math.radians(fov_deg) / 2.0))
+    return width / (2.0 * portable.tan(math.radians(fov_deg) / 2.0))
 
 
 def fov_from_focal(focal_px: float, width: int) -> float:
@@ -77,11 +79,11 @@ def intrinsics_from_blender(settings: dict, width: int, height: int) -> np.ndarr
 def opencv_to_blender_cam2world(cam2world_cv: np.ndarray) -> np.ndarray:
     """Blender object ``matrix_world`` (4x4) for an OpenCV camera-to-world matrix."""
     out = np.array(cam2world_cv, dtype=float).copy()
-    out[:3, :3] = out[:3, :3] @ CV_TO_BLENDER
+    out[:3, 1:3] = -out[:3, 1:3]  # R @ diag(1, -1, -1), exactly: flip y and z
     return out
 
 
-def pose_matrix(rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
+def pose_matrix(rotation, translation) -> np.ndarray:
     """4x4 homogeneous matrix from a 3x3 rotation and a 3-vector translation."""
     m = np.eye(4)
     m[:3, :3] = rotation
@@ -89,15 +91,16 @@ def pose_matrix(rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
     return m
 
 
-def invert_pose(m: np.ndarray) -> np.ndarray:
-    """Inverse of a rigid 4x4 transform."""
-    r, t = m[:3, :3], m[:3, 3]
-    return pose_matrix(r.T, -r.T @ t)
+def invert_pose(m) -> np.ndarray:
+    """Inverse of a rigid 4x4 transform: [R^T, -R^T t] (portable arithmetic)."""
+    m = np.asarray(m, dtype=float)
+    rt = portable.transpose(m[:3, :3])
+    return pose_matrix(rt, [-x for x in portable.matvec(rt, m[:3, 3])])
 
 
-def quat_to_matrix(q: np.ndarray) -> np.ndarray:
-    """3x3 rotation matrix of a unit quaternion [w, x, y, z]."""
-    w, x, y, z = np.asarray(q, dtype=float) / np.linalg.norm(q)
+def quat_to_matrix(q) -> np.ndarray:
+    """3x3 rotation matrix of a quaternion [w, x, y, z] (normalised first)."""
+    w, x, y, z = portable.normalise(q)
     return np.array(
         [
             [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
@@ -107,47 +110,55 @@ def quat_to_matrix(q: np.ndarray) -> np.ndarray:
     )
 
 
-def matrix_to_quat(m: np.ndarray) -> np.ndarray:
+def matrix_to_quat(m) -> np.ndarray:
     """Unit quaternion [w, x, y, z] (w >= 0) of a 3x3 rotation matrix."""
-    m = np.asarray(m, dtype=float)
-    tr = np.trace(m)
+    m = [[float(v) for v in row] for row in np.asarray(m, dtype=float)]
+    tr = m[0][0] + m[1][1] + m[2][2]
     if tr > 0:
         s = 2.0 * math.sqrt(tr + 1.0)
-        q = [0.25 * s, (m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s]
-    elif m[0, 0] > m[1, 1] and m[0, 0] > m[2, 2]:
-        s = 2.0 * math.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2])
-        q = [(m[2, 1] - m[1, 2]) / s, 0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s]
-    elif m[1, 1] > m[2, 2]:
-        s = 2.0 * math.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2])
-        q = [(m[0, 2] - m[2, 0]) / s, (m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s]
+        q = [0.25 * s, (m[2][1] - m[1][2]) / s, (m[0][2] - m[2][0]) / s, (m[1][0] - m[0][1]) / s]
+    elif m[0][0] > m[1][1] and m[0][0] > m[2][2]:
+        s = 2.0 * math.sqrt(1.0 + m[0][0] - m[1][1] - m[2][2])
+        q = [(m[2][1] - m[1][2]) / s, 0.25 * s, (m[0][1] + m[1][0]) / s, (m[0][2] + m[2][0]) / s]
+    elif m[1][1] > m[2][2]:
+        s = 2.0 * math.sqrt(1.0 + m[1][1] - m[0][0] - m[2][2])
+        q = [(m[0][2] - m[2][0]) / s, (m[0][1] + m[1][0]) / s, 0.25 * s, (m[1][2] + m[2][1]) / s]
     else:
-        s = 2.0 * math.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1])
-        q = [(m[1, 0] - m[0, 1]) / s, (m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s]
-    q = np.array(q) / np.linalg.norm(q)
-    return -q if q[0] < 0 else q
+        s = 2.0 * math.sqrt(1.0 + m[2][2] - m[0][0] - m[1][1])
+        q = [(m[1][0] - m[0][1]) / s, (m[0][2] + m[2][0]) / s, (m[1][2] + m[2][1]) / s, 0.25 * s]
+    q = portable.normalise(q)
+    return np.array([-v for v in q] if q[0] < 0 else q)
 
 
-def rotation_vector_to_matrix(v: np.ndarray) -> np.ndarray:
+def rotation_vector_to_matrix(v) -> np.ndarray:
     """Rodrigues: rotation of angle |v| (radians) about axis v / |v|."""
-    v = np.asarray(v, dtype=float)
-    angle = float(np.linalg.norm(v))
+    angle = portable.norm(v)
     if angle < 1e-15:
         return np.eye(3)
-    k = v / angle
-    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + math.sin(angle) * kx + (1 - math.cos(angle)) * kx @ kx
+    ax, ay, az = (float(c) / angle for c in v)
+    k = [[0.0, -az, ay], [az, 0.0, -ax], [-ay, ax, 0.0]]
+    k2 = portable.matmul(k, k)
+    s, c = portable.sin(angle), 1.0 - portable.cos(angle)
+    return np.array(
+        [[(i == j) + s * k[i][j] + c * k2[i][j] for j in range(3)] for i in range(3)], dtype=float
+    )
 
 
 def random_rotation(rng: np.random.Generator) -> np.ndarray:
     """Rotation matrix drawn uniformly from SO(3) (normalised Gaussian quaternion)."""
-    q = rng.normal(size=4)
-    return quat_to_matrix(q / np.linalg.norm(q))
+    return quat_to_matrix(rng.normal(size=4).tolist())
 
 
 def random_unit_vector(rng: np.random.Generator) -> np.ndarray:
     """Direction drawn uniformly on the unit sphere."""
-    v = rng.normal(size=3)
-    return v / np.linalg.norm(v)
+    return np.array(portable.normalise(rng.normal(size=3).tolist()))
+
+
+def pixel_ray(K, u: float, v: float) -> list[float]:
+    """K^-1 [u, v, 1] (camera frame, z = 1) by back-substitution on the upper-triangular K."""
+    (f, skew, cx), (_, fy, cy) = K[0], K[1]
+    y = (v - float(cy)) / float(fy)
+    return [(u - float(skew) * y - float(cx)) / float(f), y, 1.0]
 
 
 def project(points_cam: np.ndarray, K: np.ndarray) -> np.ndarray:

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
+from . import camera, portable
 
 CHUNK_SIZE = 200  # scenes per chunk folder (the original StillBox layout)
 DATASET_JSON = "dataset.json"
@@ -89,9 +89,8 @@ def scene_record(spec: dict, image_format: str, legacy: bool) -> dict:
     local, n = local_index(spec["index"]), len(cam["cam2world"])
     rgb = [rgb_name(local, f, image_format) for f in range(n)]
     exr = [depth_name(local, f) for f in range(n)]
-    c2w = [np.array(m) for m in cam["cam2world"]]
-    w2c = [np.linalg.inv(m) for m in c2w]
-    displacement = float(np.linalg.norm(cam["speed"]) * cam["time_step"])
+    w2c = [camera.invert_pose(m) for m in cam["cam2world"]]
+    displacement = portable.norm(cam["speed"]) * cam["time_step"]
     return {
         "imgs": [rgb_name(local, f, "jpg") for f in range(n)] if legacy else rgb,
         "depth": [depth_name(local, f, "npy") for f in range(n)] if legacy else exr,

@@ -1,8 +1,9 @@
 """Plain, serialisable scene descriptions and their random sampling (no Blender here).
 
 Scene ``k`` of a dataset depends only on ``(seed, k)`` and the :class:`DatasetConfig`: its random
-stream is ``numpy.random.default_rng(SeedSequence([seed, k]))``. Blender only renders a
-:class:`SceneSpec`; every random choice is made here.
+stream is PCG64 seeded by ``SeedSequence([seed, k])`` (numpy's ``default_rng``). All arithmetic
+from the draws to the spec is :mod:`portable`, so a spec has the same bits on every machine.
+Blender only renders a :class:`SceneSpec`; every random choice is made here.
 
 World frame: right-handed, metres, +Z up (for the sun). The first camera position is the origin.
 Camera poses are OpenCV camera-to-world matrices (x right, y down, z forward).
@@ -16,7 +17,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from . import camera, photos, shapes
+from . import camera, photos, portable, shapes
 from .config import DatasetConfig, MaterialsConfig
 
 # Pattern frequencies (features per metre), low enough that textures stay legible at 64 px with a
@@ -131,12 +132,12 @@ def _uniform(rng: np.random.Generator, r: tuple[float, float]) -> float:
 
 
 def _log_uniform(rng: np.random.Generator, lo: float, hi: float) -> float:
-    return float(math.exp(rng.uniform(math.log(lo), math.log(hi))))
+    return portable.exp(rng.uniform(portable.log(lo), portable.log(hi)))
 
 
 def _colour(rng: np.random.Generator, value: float) -> list[float]:
     r, g, b = colorsys.hsv_to_rgb(rng.random(), rng.uniform(0.1, 0.9), value)
-    return [c**2.2 for c in (r, g, b)]  # sRGB-ish to linear
+    return [portable.power(c, 2.2) for c in (r, g, b)]  # sRGB-ish to linear
 
 
 def photo_files(cfg: MaterialsConfig) -> tuple[str, ...]:
@@ -225,14 +226,15 @@ def sample_distance(rng: np.random.Generator, r: tuple[float, float], law: str) 
     of the shell (density proportional to distance squared, so more objects far than near)."""
     if law == "uniform":
         return _uniform(rng, r)
-    lo, hi = r[0] ** 3, r[1] ** 3
-    return float(rng.uniform(lo, hi) ** (1.0 / 3.0))
+    lo, hi = r[0] * r[0] * r[0], r[1] * r[1] * r[1]
+    return portable.cbrt(rng.uniform(lo, hi))
 
 
 def sample_camera(rng: np.random.Generator, cfg: DatasetConfig) -> CameraSpec:
     c = cfg.camera
     r0 = camera.random_rotation(rng) if c.random_orientation else np.eye(3)
     direction = camera.random_unit_vector(rng)  # in the first frame's camera axes
+    # portable.* products (not numpy's @): the same bits on every CPU
     speed = direction * c.displacement / c.time_step
     spin_axis = camera.random_unit_vector(rng)
     rotating = c.rotation_noise_deg > 0 or c.rotation_speed_deg > 0
@@ -244,10 +246,12 @@ def sample_camera(rng: np.random.Generator, cfg: DatasetConfig) -> CameraSpec:
             noise = rng.normal(0.0, math.radians(c.rotation_noise_deg), size=3)
             if i == 0:  # the first frame defines the reference axes
                 noise[:] = 0.0
-            rel = camera.rotation_vector_to_matrix(spin) @ camera.rotation_vector_to_matrix(noise)
+            rel = portable.matmul(
+                camera.rotation_vector_to_matrix(spin), camera.rotation_vector_to_matrix(noise)
+            )
             quats.append(_plain_floats(camera.matrix_to_quat(rel)))
-        position = r0 @ (direction * c.displacement * i)
-        poses.append(_plain_floats(camera.pose_matrix(r0 @ rel, position)))
+        position = portable.matvec(r0, direction * c.displacement * i)
+        poses.append(_plain_floats(camera.pose_matrix(portable.matmul(r0, rel), position)))
     return CameraSpec(
         width=c.width,
         height=c.height,
@@ -274,10 +278,10 @@ def sample_primitive(
     else:  # uniformly over the first frame's image
         u = rng.uniform(-0.5, cam.width - 0.5)
         v = rng.uniform(-0.5, cam.height - 0.5)
-        ray = np.linalg.solve(np.array(cam.K), [u, v, 1.0])
-        ray /= np.linalg.norm(ray)
+        ray = portable.normalise(camera.pixel_ray(cam.K, u, v))
     pose0 = np.array(cam.cam2world[0])
-    location = pose0[:3, :3] @ (ray * distance) + pose0[:3, 3]
+    offset = portable.matvec(pose0[:3, :3], [x * distance for x in ray])
+    location = [a + float(b) for a, b in zip(offset, pose0[:3, 3], strict=True)]
     rotation = camera.matrix_to_quat(camera.random_rotation(rng))
     material = sample_material(rng, cfg.materials, OBJECT_TEXTURE_SCALE, OBJECT_PHOTO_SCALE)
     return PrimitiveSpec(kind, dims, _plain_floats(location), _plain_floats(rotation), material)
@@ -287,10 +291,10 @@ def path_hits(prim: PrimitiveSpec, cam: CameraSpec, clearance: float) -> bool:
     """True if the camera centre comes within ``clearance`` metres of the primitive (or inside)."""
     p0 = np.array(cam.cam2world[0])[:3, 3]
     p1 = np.array(cam.cam2world[-1])[:3, 3]
-    n = max(2, int(math.ceil(np.linalg.norm(p1 - p0) / 0.005)) + 1)
+    n = max(2, int(math.ceil(portable.norm(p1 - p0) / 0.005)) + 1)
     pts = p0 + np.linspace(0, 1, n)[:, None] * (p1 - p0)
-    rot = camera.quat_to_matrix(prim.rotation)
-    local = (pts - np.array(prim.location)) @ rot  # R^T (p - t), row-wise
+    rot_t = camera.quat_to_matrix(prim.rotation).T
+    local = portable.transform_rows(rot_t, pts - np.array(prim.location))  # R^T (p - t)
     return bool(
         np.any(shapes.signed_distance(prim.kind, np.array(prim.dimensions), local) < clearance)
     )
@@ -301,9 +305,9 @@ def sample_light(rng: np.random.Generator, cfg: DatasetConfig) -> LightSpec:
     elevation = math.radians(_uniform(rng, lc.sun_elevation_range_deg))
     azimuth = rng.uniform(0, 2 * math.pi)
     to_sun = [
-        math.cos(elevation) * math.cos(azimuth),
-        math.cos(elevation) * math.sin(azimuth),
-        math.sin(elevation),
+        portable.cos(elevation) * portable.cos(azimuth),
+        portable.cos(elevation) * portable.sin(azimuth),
+        portable.sin(elevation),
     ]
     jitter = lambda: _plain_floats(1.0 - rng.uniform(0, lc.colour_jitter, size=3))  # noqa: E731
     return LightSpec(
@@ -340,7 +344,7 @@ def scene_seed(seed: int, index: int) -> int:
 
 def sample_scene(cfg: DatasetConfig, index: int) -> SceneSpec:
     """Scene ``index`` of the dataset, resampled until the camera path is clear of objects."""
-    rng = np.random.default_rng(np.random.SeedSequence([cfg.seed, index]))
+    rng = portable.Generator(np.random.PCG64(np.random.SeedSequence([cfg.seed, index])))
     for attempt in range(MAX_ATTEMPTS):
         cam = sample_camera(rng, cfg)
         prims = [sample_primitive(rng, cfg, cam) for _ in range(cfg.objects.count)]

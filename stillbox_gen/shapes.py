@@ -16,21 +16,24 @@ polyhedra of the curved shapes, so a point the function calls outside is outside
 from __future__ import annotations
 
 import functools
+import math
 
 import numpy as np
+
+from . import portable
 
 
 def _box2d(p: np.ndarray, half: np.ndarray) -> np.ndarray:
     q = np.abs(p) - half
-    outside = np.linalg.norm(np.maximum(q, 0.0), axis=-1)
+    outside = portable.row_norms(np.maximum(q, 0.0))
     inside = np.minimum(q.max(axis=-1), 0.0)
     return outside + inside
 
 
 def _segment_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     ab = b - a
-    t = np.clip(((p - a) @ ab) / (ab @ ab), 0.0, 1.0)
-    return np.linalg.norm(p - (a + t[:, None] * ab), axis=-1)
+    t = np.clip(portable.transform_rows([ab], p - a)[:, 0] / portable.dot(ab, ab), 0.0, 1.0)
+    return portable.row_norms(p - (a + t[:, None] * ab))
 
 
 def _cone2d(rho: np.ndarray, z: np.ndarray, r: float, h: float) -> np.ndarray:
@@ -50,15 +53,15 @@ def signed_distance(kind: str, dimensions: np.ndarray, p: np.ndarray) -> np.ndar
     if kind in ("cube", "slab"):
         return _box2d(p, np.array([dx, dy, dz]) / 2)
     if kind == "sphere":
-        return np.linalg.norm(p, axis=-1) - dx / 2
-    rho = np.linalg.norm(p[:, :2], axis=-1)
+        return portable.row_norms(p) - dx / 2
+    rho = portable.row_norms(p[:, :2])
     if kind == "cylinder":
         return _box2d(np.stack([rho, p[:, 2]], axis=-1), np.array([dx / 2, dz / 2]))
     if kind == "cone":
         return _cone2d(rho, p[:, 2], dx / 2, dz)
     if kind == "torus":
         major, minor = (dx - dz) / 2, dz / 2
-        return np.hypot(rho - major, p[:, 2]) - minor
+        return portable.row_norms(np.stack([rho - major, p[:, 2]], axis=-1)) - minor
     raise ValueError(f"unknown primitive kind {kind!r}")
 
 
@@ -97,22 +100,27 @@ def _faces(kind: str, n: int) -> tuple[tuple[int, ...], ...]:
     raise ValueError(f"unknown primitive kind {kind!r}")
 
 
+@functools.cache
+def _unit_circle(n: int) -> np.ndarray:
+    """(cos, sin) of the angles 2 pi j / n, j = 0 .. n-1, (n, 2): the same bits on every CPU
+    (numpy's own cos and sin depend on the SIMD level)."""
+    angles = [2.0 * math.pi * j / n for j in range(n)]
+    return np.array([[portable.cos(a), portable.sin(a)] for a in angles])
+
+
 def mesh(kind: str, dimensions, segments: int = 32) -> tuple[np.ndarray, list[tuple[int, ...]]]:
     """Vertices (N, 3) in metres and polygon faces (outward, counter-clockwise) of a primitive."""
     dx, dy, dz = (float(v) for v in dimensions)
     n = segments
     faces = list(_faces(kind, n))
-    ang = np.linspace(0, 2 * np.pi, n, endpoint=False)
-    ring = np.stack([np.cos(ang), np.sin(ang)], axis=-1)
+    ring = _unit_circle(n)
     if kind in ("cube", "slab"):
         v = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], float)
         return v * np.array([dx, dy, dz]) / 2, faces
     if kind == "sphere":
-        theta = np.linspace(0, np.pi, n // 2 + 1)[1:-1][::-1]
-        sin_t = np.sin(theta)[:, None]
-        rings = np.stack(
-            [sin_t * ring[:, 0], sin_t * ring[:, 1], np.repeat(np.cos(theta)[:, None], n, 1)], -1
-        )
+        # polar angles pi - 2 pi j / n, j = 1 .. n/2 - 1, bottom ring first: -cos, sin of the circle
+        cos_t, sin_t = -ring[1 : n // 2, 0][:, None], ring[1 : n // 2, 1][:, None]
+        rings = np.stack([sin_t * ring[:, 0], sin_t * ring[:, 1], np.repeat(cos_t, n, 1)], -1)
         v = np.vstack([[[0.0, 0.0, -1.0]], rings.reshape(-1, 3), [[0.0, 0.0, 1.0]]])
         return v * dx / 2, faces
     if kind in ("cylinder", "cone"):
@@ -123,9 +131,9 @@ def mesh(kind: str, dimensions, segments: int = 32) -> tuple[np.ndarray, list[tu
         return np.vstack([base, [[0, 0, h / 2]]]), faces
     if kind == "torus":
         major, minor = (dx - dz) / 2, dz / 2
-        phi = np.linspace(0, 2 * np.pi, max(8, n // 2), endpoint=False)
-        arm = (major + minor * np.cos(phi))[None, :]  # distance from the axis, per minor angle
-        z = np.broadcast_to(minor * np.sin(phi), (n, len(phi)))
+        minor_ring = _unit_circle(max(8, n // 2))
+        arm = (major + minor * minor_ring[:, 0])[None, :]  # distance from the axis, per angle
+        z = np.broadcast_to(minor * minor_ring[:, 1], (n, len(minor_ring)))
         v = np.stack([arm * ring[:, :1], arm * ring[:, 1:], z], -1)
         return v.reshape(-1, 3), faces
     raise ValueError(f"unknown primitive kind {kind!r}")
