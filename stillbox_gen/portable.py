@@ -67,7 +67,7 @@ def log(x: float) -> float:
 
 def cbrt(x: float) -> float:
     """Real cube root (negative for negative x)."""
-    return _unary(libmp.mpf_cbrt, x)
+    return -_unary(libmp.mpf_cbrt, -x) if x < 0 else _unary(libmp.mpf_cbrt, x)
 
 
 def power(x: float, y: float) -> float:
