@@ -5,7 +5,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: install test lint demo bench-gen golden clean
+.PHONY: install test test-kernels lint demo bench-gen golden clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -21,6 +21,12 @@ lint: $(STAMP)
 
 test: $(STAMP) lint
 	$(BIN)/python -m pytest -q --durations=5
+	$(MAKE) --no-print-directory test-kernels
+
+# The suite again under an old x86-64's CPU kernels (OpenBLAS, numpy SIMD, ATen, oneDNN, libm):
+# what must not depend on the machine does not (README: Same results on every machine).
+test-kernels: $(STAMP)
+	tests/old_x86_kernels.sh $(BIN)/python -m pytest -q -p no:cacheprovider
 
 # The main job on a small default: generate 40 scenes at 64 px, check them, train DepthNet
 # briefly on CPU (or GPU), score it and write the report (23-53 s in all on 2 cores).
