@@ -9,7 +9,9 @@ import contextlib
 import dataclasses
 import math
 import os
+import signal
 import sys
+import threading
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -574,20 +576,43 @@ def reading(argument: str | None = None):
         raise ConfigError(f"{argument}: {e}" if argument else str(e)) from None
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (what ``timeout`` and job schedulers send), handled as Ctrl-C."""
+
+
+def _raise_terminated(signum: int, frame: object) -> None:
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)  # a second SIGTERM ends the process at once
+    raise Terminated()
+
+
+@contextlib.contextmanager
+def sigterm_as_interrupt():
+    """Within the block, SIGTERM raises :class:`Terminated` (a KeyboardInterrupt) in the main
+    thread, so it stops the workers and exits as Ctrl-C does (exit code 128 + 15); in another
+    thread, where Python cannot set signal handlers, nothing changes."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGTERM, _raise_terminated)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
 def main(argv: list[str] | None = None) -> None:
     os.environ.setdefault("OPENCV_IO_ENABLE_OPENEXR", "1")
     try:
-        cli.main(args=argv, prog_name="stillbox-gen", standalone_mode=False)
+        with sigterm_as_interrupt():
+            cli.main(args=argv, prog_name="stillbox-gen", standalone_mode=False)
     except (ConfigError, click.UsageError) as e:
         message = e.format_message() if isinstance(e, click.ClickException) else str(e)
         click.echo(f"stillbox-gen: error: {message}", err=True)
         sys.exit(2)
-    except click.exceptions.Abort:
+    except (click.exceptions.Abort, KeyboardInterrupt) as e:  # click turns Ctrl-C into Abort
         click.echo("stillbox-gen: interrupted; re-run the same command to resume", err=True)
-        sys.exit(130)
-    except KeyboardInterrupt:
-        click.echo("stillbox-gen: interrupted; re-run the same command to resume", err=True)
-        sys.exit(130)
+        terminated = isinstance(e, Terminated) or isinstance(e.__cause__, Terminated)
+        sys.exit(128 + signal.SIGTERM if terminated else 130)
     except RuntimeError as e:
         click.echo(f"stillbox-gen: failed: {e}", err=True)
         sys.exit(1)

@@ -18,8 +18,11 @@ from __future__ import annotations
 import functools
 import json
 import multiprocessing
+import os
 import subprocess
 import sys
+import threading
+import time
 from concurrent.futures import Future, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
@@ -104,14 +107,60 @@ def choose_device(choice: str, backend: str = "local") -> tuple[str, str]:
     )
 
 
+PR_SET_PDEATHSIG = 1  # prctl(2) option: the signal a process gets when its parent ends
+PARENT_POLL_SECONDS = 1.0  # without prctl: how often a worker checks that its parent lives
+
+
+def exit_with_parent(parent: int) -> None:
+    """End this process when its parent, process ``parent``, ends, however it ends (kill -9
+    included): a Blender worker (about 500 MB) must not outlive the run that started it.
+
+    On Linux the kernel sends SIGKILL at the parent's death (prctl PR_SET_PDEATHSIG): immediate,
+    even in the middle of a render (which may hold the GIL for minutes, stalling any thread),
+    and free. The kernel tracks the thread that spawned the process; the pool's workers are
+    spawned by the main thread or the pool's manager thread, which both live as long as the
+    pool's workers do. Elsewhere, a daemon thread polls os.getppid() every
+    PARENT_POLL_SECONDS. Either way, a parent that died before this call ends the process now.
+    """
+    if sys.platform.startswith("linux"):
+        import ctypes
+        import signal
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        if libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0) != 0:
+            _poll_parent(parent)
+    else:
+        _poll_parent(parent)
+    if os.getppid() != parent:  # the parent died before the death signal was set up
+        os._exit(1)
+
+
+def _poll_parent(parent: int) -> None:
+    """A daemon thread ending the process once ``parent`` is no longer its parent."""
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(PARENT_POLL_SECONDS)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="exit-with-parent", daemon=True).start()
+
+
+def _init_local_worker(parent: int, *init_args) -> None:
+    """Initializer of a process_pool worker: die with the driver, then :func:`init_worker`."""
+    exit_with_parent(parent)
+    init_worker(*init_args)
+
+
 def process_pool(workers: int, init_args: tuple, recycle_after: int | None = None):
     """A ProcessPoolExecutor of ``workers`` spawned processes set up by :func:`init_worker`
-    (each replaced after ``recycle_after`` scenes when given). Submit :func:`render_scene`."""
+    (each replaced after ``recycle_after`` scenes when given), each ending when this process
+    ends (:func:`exit_with_parent`). Submit :func:`render_scene`."""
     return ProcessPoolExecutor(
         max_workers=workers,
         mp_context=multiprocessing.get_context("spawn"),
-        initializer=init_worker,
-        initargs=init_args,
+        initializer=_init_local_worker,
+        initargs=(os.getpid(), *init_args),
         max_tasks_per_child=recycle_after,
     )
 
