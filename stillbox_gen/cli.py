@@ -11,7 +11,6 @@ import math
 import os
 import signal
 import sys
-import threading
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -21,6 +20,7 @@ from . import config
 from .config import ConfigError
 from .dataset import MAX_DEPTH, NOMINAL_SHIFT, default_root
 from .formats import DatasetError
+from .workers import Terminated, sigterm_as_interrupt
 
 if TYPE_CHECKING:
     from .generate import RunOptions
@@ -574,30 +574,6 @@ def reading(argument: str | None = None):
         yield
     except DatasetError as e:
         raise ConfigError(f"{argument}: {e}" if argument else str(e)) from None
-
-
-class Terminated(KeyboardInterrupt):
-    """SIGTERM (what ``timeout`` and job schedulers send), handled as Ctrl-C."""
-
-
-def _raise_terminated(signum: int, frame: object) -> None:
-    signal.signal(signal.SIGTERM, signal.SIG_DFL)  # a second SIGTERM ends the process at once
-    raise Terminated()
-
-
-@contextlib.contextmanager
-def sigterm_as_interrupt():
-    """Within the block, SIGTERM raises :class:`Terminated` (a KeyboardInterrupt) in the main
-    thread, so it stops the workers and exits as Ctrl-C does (exit code 128 + 15); in another
-    thread, where Python cannot set signal handlers, nothing changes."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    previous = signal.signal(signal.SIGTERM, _raise_terminated)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, previous)
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -28,6 +28,7 @@ import errno
 import fcntl
 import os
 import struct
+import warnings
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -37,6 +38,7 @@ from .layout import LOCK_FILE
 # struct flock of fcntl(F_GETLK) on Linux (x86-64 and arm64): type, whence, start, len, pid
 _FLOCK = "hhqqi4x"
 _BUSY = (errno.EAGAIN, errno.EACCES)  # what a refused non-blocking lock raises
+_UNSUPPORTED = (errno.ENOLCK, errno.EOPNOTSUPP, errno.ENOSYS)  # a file system without locks
 _HELD: dict[str, int] = {}  # folder (real path) -> nesting depth in this process
 
 
@@ -90,6 +92,8 @@ def _acquire(path: Path, what: str, folder: Path, shard: tuple[int, int]) -> int
                 try:
                     fcntl.lockf(fd, mode, length, start)
                 except OSError as e:
+                    if e.errno in _UNSUPPORTED:
+                        return _unlocked(fd, what, folder, e)
                     if e.errno not in _BUSY:
                         raise
                     pid = _holder(fd, start, length, exclusive)
@@ -104,6 +108,17 @@ def _acquire(path: Path, what: str, folder: Path, shard: tuple[int, int]) -> int
         if _same_file(fd, path):  # not deleted by a run that ended meanwhile
             return fd
         os.close(fd)
+
+
+def _unlocked(fd: int, what: str, folder: Path, e: OSError) -> int:
+    """A folder whose file system has no record locks (some cluster file systems): warn, go on
+    without the lock (returns ``fd`` as if locked; closing it later is harmless)."""
+    warnings.warn(
+        f"{what}: '{folder}' cannot be locked ({e.strerror}); a second run into it would not be "
+        "refused",
+        stacklevel=4,
+    )
+    return fd
 
 
 def _release(fd: int, path: Path) -> None:

@@ -9,16 +9,22 @@ every backend (see also stillbox_gen.ray_pool.RayPool):
 - ``died_errors``: exceptions meaning a worker died (its pool must be replaced);
 - ``kill()``: stop crashed or hung workers at once; ``shutdown()``: wait for them to end.
 
+Workers end with the driver (:func:`exit_with_parent`), and SIGTERM of the driver is turned into a
+KeyboardInterrupt (:func:`sigterm_as_interrupt`, used by the command line) so that the run loop
+kills its workers and exits as on Ctrl-C.
+
 :func:`choose_device` turns ``--device`` into the Cycles device the workers use, asking Blender
 (:func:`find_gpus`, in a subprocess) which GPU backends have a device.
 """
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import json
 import multiprocessing
 import os
+import signal
 import subprocess
 import sys
 import threading
@@ -28,6 +34,52 @@ from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 
 from .config import CPU_DEVICE, GPU_BACKENDS, ConfigError, DatasetConfig
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (what ``timeout`` and job schedulers send), handled as Ctrl-C."""
+
+
+def _raise_terminated(signum: int, frame: object = None) -> None:
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)  # a second SIGTERM ends the process at once
+    raise Terminated()
+
+
+@contextlib.contextmanager
+def sigterm_as_interrupt():
+    """Within the block, SIGTERM raises :class:`Terminated` (a KeyboardInterrupt) in the main
+    thread, so it stops the workers and exits as Ctrl-C does (exit code 128 + 15); in another
+    thread, where Python cannot set signal handlers, nothing changes."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGTERM, _raise_terminated)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+@contextlib.contextmanager
+def sigterm_deferred():
+    """Within :func:`sigterm_as_interrupt`, hold a SIGTERM back until the end of the block (then
+    raise :class:`Terminated`): around the spawn of a worker, which an exception would cut short
+    between starting the process and sending it its start-up data (the new process would then
+    print an EOFError traceback)."""
+    if (
+        threading.current_thread() is not threading.main_thread()
+        or signal.getsignal(signal.SIGTERM) is not _raise_terminated
+    ):
+        yield
+        return
+    got: list[int] = []
+    signal.signal(signal.SIGTERM, lambda signum, frame: got.append(signum))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, _raise_terminated)
+        if got:
+            _raise_terminated(got[0])
 
 
 def init_worker(
@@ -182,7 +234,8 @@ class LocalPool:
         self._pool = process_pool(workers, worker_init_args(cfg, threads, device), recycle_after)
 
     def submit(self, spec: dict, tmp_dir: Path, image_format: str, legacy: bool) -> Future:
-        return self._pool.submit(render_scene, spec, str(tmp_dir), image_format, legacy)
+        with sigterm_deferred():  # submit may spawn a worker
+            return self._pool.submit(render_scene, spec, str(tmp_dir), image_format, legacy)
 
     def kill(self) -> None:
         """Stop workers that crashed or hang (kills the processes, waits for nothing)."""

@@ -23,6 +23,7 @@ from conftest import (
     invoke_main,
     run_cli,
 )
+from test_bench_hardening import assert_bench_error
 
 from stillbox_gen.layout import LOCK_FILE
 from stillbox_gen.lock import FolderInUse, folder_lock
@@ -124,10 +125,7 @@ def test_second_benchmark_run_into_one_folder_is_refused(tiny_dataset, tmp_path)
     holder = hold_lock(out)
     try:
         proc = invoke_main(main, *args)
-        lines = proc.stderr.strip().splitlines()
-        assert proc.returncode == 2 and len(lines) == 1, proc.stderr
-        assert lines[0].startswith("stillbox-bench: error: --out: ")
-        assert f"'{out}' is in use" in lines[0] and f"process {holder.pid}" in lines[0]
+        assert_bench_error(proc, f"--out: '{out}' is in use", f"process {holder.pid}")
         assert [p.name for p in out.iterdir()] == [LOCK_FILE]
     finally:
         kill_9(holder)
@@ -153,14 +151,16 @@ def test_terminated_or_killed_run_leaves_no_process_and_resumes(default_dataset,
     """SIGTERM (timeout, job schedulers) or kill -9 of `generate` once a worker runs: within
     seconds no process of the run is left (Blender workers, resource tracker); SIGTERM exits as
     Ctrl-C does (one line, code 143). While it runs, a second run on its --out is refused. A
-    re-run resumes to the files of an undisturbed run."""
+    re-run resumes to the files of an undisturbed run. (The run is stopped by SIGSTOP while
+    the second run is tried, so that it cannot end before the signal.)"""
     out = tmp_path / "ds"
     args = ["--res", 64, "--scenes", 4, "--seed", 3, "--device", "cpu", "--quiet", "--out", out]
     proc = subprocess.Popen([*CLI, *map(str, args)], stderr=subprocess.PIPE, text=True)
     procs = _workers(proc.pid)
-    if sig == signal.SIGTERM:
-        assert_user_error(invoke_cli(*args), f"'{out}' is in use", f"process {proc.pid}")
+    proc.send_signal(signal.SIGSTOP)  # it cannot finish meanwhile; the signal waits for SIGCONT
+    assert_user_error(invoke_cli(*args), f"'{out}' is in use", f"process {proc.pid}")
     proc.send_signal(sig)
+    proc.send_signal(signal.SIGCONT)
     _, stderr = proc.communicate(timeout=120)
     if sig == signal.SIGTERM:
         assert proc.returncode == 128 + signal.SIGTERM, stderr
