@@ -19,7 +19,7 @@ import click
 from . import config
 from .config import ConfigError
 from .dataset import MAX_DEPTH, NOMINAL_SHIFT, default_root
-from .formats import DatasetError
+from .formats import DatasetError, disk_full_message, is_disk_full
 from .workers import Terminated, sigterm_as_interrupt
 
 if TYPE_CHECKING:
@@ -591,6 +591,11 @@ def main(argv: list[str] | None = None) -> None:
         sys.exit(128 + signal.SIGTERM if terminated else 130)
     except RuntimeError as e:
         click.echo(f"stillbox-gen: failed: {e}", err=True)
+        sys.exit(1)
+    except OSError as e:
+        if not is_disk_full(e):
+            raise
+        click.echo(f"stillbox-gen: failed: {disk_full_message(e)}", err=True)
         sys.exit(1)
 
 

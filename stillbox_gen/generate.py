@@ -169,6 +169,8 @@ class _Scheduler:
         except self.pool.died_errors:
             return spec
         except Exception as e:  # a scene that cannot render: retried, then fatal
+            if formats.is_disk_full(e):  # no retry can help: stop (cli.main says it in a line)
+                raise
             self._retry([spec], f"{type(e).__name__}: {e}")
             self._submit_next()
             return None

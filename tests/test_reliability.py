@@ -1,9 +1,10 @@
-"""Concurrency and signals: one writer at a time per output folder (stillbox_gen.lock), no worker
-left behind by a terminated or killed run, and the resumed run's dataset equal to an
-undisturbed one."""
+"""Concurrency, signals and a full disk: one writer at a time per output folder
+(stillbox_gen.lock), no worker left behind by a terminated or killed run, a full disk said in one
+line without retries, and each time the resumed run's dataset equal to an undisturbed one."""
 
 from __future__ import annotations
 
+import contextlib
 import shutil
 import signal
 import subprocess
@@ -178,3 +179,73 @@ def test_terminated_or_killed_run_leaves_no_process_and_resumes(default_dataset,
     ref, got = file_tree(default_dataset), file_tree(out)
     assert sorted(ref) == sorted(got) and [n for n in ref if ref[n] != got[n]] == []
     assert run_cli("validate", out).returncode == 0
+
+
+# ---------------------------------------------------------------- a full disk
+
+
+@pytest.fixture
+def small_disk(tmp_path) -> Path:
+    """A 400 KiB tmpfs (mounting needs root; skipped otherwise), unmounted afterwards."""
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    proc = subprocess.run(
+        ["mount", "-t", "tmpfs", "-o", "size=400k", "tmpfs", str(disk)], capture_output=True
+    )
+    if proc.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here: {proc.stderr.decode().strip()}")
+    try:
+        yield disk
+    finally:
+        subprocess.run(["umount", "-l", str(disk)], check=True)
+
+
+def grow(disk: Path) -> None:
+    """Give the tmpfs room (8 MiB; files kept)."""
+    subprocess.run(["mount", "-o", "remount,size=8m", str(disk)], check=True)
+
+
+def test_full_disk_stops_generation_in_one_line_and_the_rerun_resumes(default_dataset, small_disk):
+    """Frames that do not fit on the disk: the run stops at the first failure with one line
+    naming the disk-full error and the folder (no retries, no traceback), exit 1; with room
+    again, the same command resumes to the files of an undisturbed run."""
+    out = small_disk / "ds"
+    args = ["--res", 64, "--scenes", 4, "--seed", 3, "--device", "cpu", "--quiet", "--out", out]
+    proc = run_cli(*args, check=False)
+    last = proc.stderr.strip().splitlines()[-1]
+    assert proc.returncode == 1, proc.stderr
+    assert last.startswith(f"stillbox-gen: failed: disk full writing '{out}/"), last
+    assert "(No space left on device)" in last and "re-run the same command" in last
+    for word in ("Traceback", "StopIteration", "failed 3 times", "retried"):
+        assert word not in proc.stderr
+    grow(small_disk)
+    run_cli(*args)
+    ref, got = file_tree(default_dataset), file_tree(out)
+    assert sorted(ref) == sorted(got) and [n for n in ref if ref[n] != got[n]] == []
+    assert run_cli("validate", out).returncode == 0
+
+
+def test_full_disk_while_indexing_is_one_line_and_leaves_no_partial_file(
+    default_dataset, small_disk
+):
+    """The driver's own writes (here `index` writing metadata.json) on a full disk: one line
+    naming the file, exit 1, no temporary file left; with room again, index succeeds."""
+    ds = small_disk / "ds"
+    grow(small_disk)
+    shutil.copytree(default_dataset, ds)
+    (ds / "0" / "metadata.json").unlink()
+    (ds / "manifest.parquet").unlink()
+    with contextlib.suppress(OSError), open(small_disk / "filler", "wb") as f:
+        while True:  # fill the disk
+            f.write(bytes(4096))
+            f.flush()
+    proc = invoke_cli("index", ds)
+    assert proc.returncode == 1, proc.stderr
+    assert proc.stderr.strip().splitlines() == [
+        f"stillbox-gen: failed: disk full writing '{ds}/0/metadata.json' (No space left on "
+        "device); finished scenes are kept: free space, then re-run the same command to resume"
+    ]
+    assert not list((ds / "0").glob(".metadata.json.tmp-*"))
+    (small_disk / "filler").unlink()
+    assert invoke_cli("index", ds).returncode == 0
+    assert run_cli("validate", ds).returncode == 0
