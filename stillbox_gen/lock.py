@@ -1,14 +1,14 @@
-"""One writer at a time per output folder: an advisory lock on ``<folder>/.lock``.
+"""One writer at a time per output folder: an advisory lock on ``<folder>/.stillbox.lock``.
 
 A run that writes into a dataset (``generate``, ``merge``, ``index``) or a benchmark run folder
-holds a POSIX record lock (``fcntl``) on the file ``.stillbox.lock`` (stillbox_gen.layout.LOCK_FILE)
-inside that folder while it
-writes. A second run on the same folder is refused at once with a ConfigError naming the folder
-and the process that holds it. The kernel drops the lock when its process ends, however it ends
-(``kill -9`` included): a lock file left by a killed run blocks nothing, and the next run takes
-it over. A run that ends deletes the lock file when no other run holds it (and only while it is
-empty: the lock writes nothing into it, so a user's file of that name is never deleted), so a
-finished folder holds no lock file; ``validate`` accepts one left by a killed run.
+holds a POSIX record lock (``fcntl``) on the file stillbox_gen.layout.LOCK_FILE inside that folder
+while it writes. A second run on the same folder is refused at once with a ConfigError naming the
+folder and the process that holds it. The kernel drops the lock when its process ends, however it
+ends (``kill -9`` included): a lock file left by a killed run blocks nothing, and the next run
+takes it over. A run that ends deletes the lock file when no other run holds it (and only while
+it is empty: the lock writes nothing into it, so a user's file of that name is never deleted), so
+a finished folder holds no lock file; ``validate`` accepts one left by a killed run. On a file
+system without record locks the run goes on unlocked, with a warning.
 
 Shards (``generate --shard I/N``) render disjoint scenes into one folder at the same time: each
 holds a shared lock on byte 0 of the file and an exclusive lock on a byte of its own
