@@ -158,6 +158,7 @@ def test_terminated_or_killed_run_leaves_no_process_and_resumes(default_dataset,
     args = ["--res", 64, "--scenes", 4, "--seed", 3, "--device", "cpu", "--quiet", "--out", out]
     proc = subprocess.Popen([*CLI, *map(str, args)], stderr=subprocess.PIPE, text=True)
     procs = _workers(proc.pid)
+    assert any(b"resource_tracker" in cmdline(p) for p in procs)  # it must end too
     proc.send_signal(signal.SIGSTOP)  # it cannot finish meanwhile; the signal waits for SIGCONT
     assert_user_error(invoke_cli(*args), f"'{out}' is in use", f"process {proc.pid}")
     proc.send_signal(sig)
