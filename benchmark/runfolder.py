@@ -14,6 +14,7 @@ Layout of a run folder::
     pixels.npz           a pixel subsample of the scored pairs (for the figures)
     plots/               PNG figures (:data:`PLOTS`)
     predictions/         depth maps of every scored pair (``--save-predictions``)
+    .stillbox.lock       while a run writes the folder (stillbox_gen.lock, via runner.run_method)
 
 A comparison (``compare --out DIR``, ``report --out OUT``) writes ``OUT.md``, ``OUT.csv`` and
 ``OUT-error_vs_foe_distance.png`` (``compare``: OUT = DIR/comparison, beside one run folder per
@@ -22,7 +23,8 @@ method).
 Writes: JSON, Markdown and CSV reports by :func:`stillbox_gen.formats.atomic_write_text` (a
 temporary name, fsynced, renamed); checkpoints, figures and ``pixels.npz`` by
 :func:`atomic_write_binary`; ``steps.csv`` and ``metrics.csv`` grow a row at a time and are cut
-back to the checkpoint's step on resume (:func:`start_logs`). Only this module writes into a run
+back to the checkpoint's step on resume (:func:`start_logs`), and so are the TensorBoard event
+files (:func:`cut_events`). Only this module writes into a run
 folder (evaluate's per-pair predictions go through :func:`save_prediction`).
 """
 
@@ -198,7 +200,8 @@ def remove_stale_temps(folder: Path) -> list[Path]:
 def start_logs(run: Path, resume: bool, last_step: int) -> list[Path]:
     """Make the folder ready for training; return the checkpoint temporaries it removed.
 
-    Resuming: drop log rows written after the checkpoint's ``last_step``. Not resuming (no
+    Resuming: drop log rows and TensorBoard events written after the checkpoint's
+    ``last_step``. Not resuming (no
     checkpoint to continue, e.g. a run killed before its first one): start steps.csv,
     metrics.csv, tb/ and best.pt afresh. Either way delete checkpoint temporaries left by a kill.
     """
@@ -212,11 +215,35 @@ def start_logs(run: Path, resume: bool, last_step: int) -> list[Path]:
             for row in rows:
                 if float(row["step"]) <= last_step:
                     append_row(run, name, row)
+        cut_events(tb_dir(run), last_step)
         return stale
     for path in (run / STEPS_CSV, run / METRICS_CSV, checkpoint_path(run, "best")):
         path.unlink(missing_ok=True)
     shutil.rmtree(tb_dir(run), ignore_errors=True)
     return stale
+
+
+def cut_events(folder: Path, last_step: int) -> None:
+    """Drop the TensorBoard events of steps after ``last_step`` from every event file of
+    ``folder`` (rewritten atomically; a record cut short by a kill is dropped too), so a resumed
+    run logs each step once, whatever reads the files (TensorBoard's purge of orphaned data is
+    done by some readers only)."""
+    from tensorboard.backend.event_processing.event_file_loader import RawEventFileLoader
+    from tensorboard.compat.proto.event_pb2 import Event
+    from tensorboard.summary.writer.record_writer import RecordWriter
+
+    for path in sorted(Path(folder).glob("events.out.tfevents.*")) if Path(folder).is_dir() else []:
+        records = list(RawEventFileLoader(str(path)).Load())
+        kept = [r for r in records if Event.FromString(r).step <= last_step]
+        if len(kept) == len(records) and path.stat().st_size == sum(len(r) + 16 for r in kept):
+            continue  # nothing after the checkpoint, no truncated record
+
+        def write(f: BinaryIO, kept: list[bytes] = kept) -> None:
+            writer = RecordWriter(f)
+            for record in kept:
+                writer.write(record)
+
+        atomic_write_binary(path, write)
 
 
 def append_row(run: Path, name: str, row: dict) -> None:

@@ -11,12 +11,14 @@ with a one-line message.
 from __future__ import annotations
 
 import dataclasses
+import os
 import time
 from pathlib import Path
 
 import numpy as np
 
 from stillbox_gen.dataset import MAX_DEPTH, NOMINAL_SHIFT
+from stillbox_gen.lock import folder_lock
 
 from . import registry, report, runfolder
 from .checkpoint import load_checkpoint, load_weights
@@ -199,7 +201,19 @@ def train_config(model: str, data: Path, out: Path, **overrides) -> TrainConfig:
 
 
 def run_method(model: str, data: Path, out: Path, **overrides) -> dict | None:
-    """``stillbox-bench run``: train and score a network, or score a method without one."""
+    """``stillbox-bench run``: train and score a network, or score a method without one.
+
+    The main process holds the lock of ``out`` throughout (stillbox_gen.lock): a second run into
+    the same folder is refused with a ValueError naming it and the process holding it. Under DDP
+    (torchrun) only rank 0 (environment variable RANK) takes it; the other ranks write nothing.
+    """
+    if int(os.environ.get("RANK", "0")) != 0:
+        return _run_method(model, data, out, **overrides)
+    with folder_lock(Path(out), "--out"):
+        return _run_method(model, data, out, **overrides)
+
+
+def _run_method(model: str, data: Path, out: Path, **overrides) -> dict | None:
     spec = registry.MODELS[model]
     if not spec.trainable:
         o = {k: overrides[k] for k in ("device", "save_predictions") if k in overrides}

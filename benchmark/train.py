@@ -329,7 +329,7 @@ class Trainer:
 
     def _start_run_folder(self) -> None:
         """Create the run folder (runfolder.start_logs), write config.json and environment.json,
-        open TensorBoard (on resume it drops the events logged after the checkpoint)."""
+        open TensorBoard (on resume, start_logs dropped the events logged after the checkpoint)."""
         cfg = self.cfg
         for p in runfolder.start_logs(self.run, cfg.resume, self.state["global_step"]):
             self.log(f"removed {p}, left by an interrupted checkpoint write")
@@ -340,8 +340,9 @@ class Trainer:
         runfolder.write_environment(self.run, env)
         from torch.utils.tensorboard import SummaryWriter
 
-        purge = self.state["global_step"] if cfg.resume else None
-        self.tb = SummaryWriter(str(runfolder.tb_dir(self.run)), purge_step=purge)
+        # on resume, start_logs cut the event files back to the checkpoint's step (no purge_step:
+        # its reader-side purge would also hide that step's points)
+        self.tb = SummaryWriter(str(runfolder.tb_dir(self.run)))
 
     def checkpoint(self, name: str) -> None:
         """Save ``checkpoints/<name>.pt`` (main process only): weights, optimiser, scheduler,

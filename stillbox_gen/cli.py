@@ -9,6 +9,7 @@ import contextlib
 import dataclasses
 import math
 import os
+import signal
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -18,7 +19,8 @@ import click
 from . import config
 from .config import ConfigError
 from .dataset import MAX_DEPTH, NOMINAL_SHIFT, default_root
-from .formats import DatasetError
+from .formats import DatasetError, disk_full_message, is_disk_full
+from .workers import Terminated, sigterm_as_interrupt
 
 if TYPE_CHECKING:
     from .generate import RunOptions
@@ -577,19 +579,23 @@ def reading(argument: str | None = None):
 def main(argv: list[str] | None = None) -> None:
     os.environ.setdefault("OPENCV_IO_ENABLE_OPENEXR", "1")
     try:
-        cli.main(args=argv, prog_name="stillbox-gen", standalone_mode=False)
+        with sigterm_as_interrupt():
+            cli.main(args=argv, prog_name="stillbox-gen", standalone_mode=False)
     except (ConfigError, click.UsageError) as e:
         message = e.format_message() if isinstance(e, click.ClickException) else str(e)
         click.echo(f"stillbox-gen: error: {message}", err=True)
         sys.exit(2)
-    except click.exceptions.Abort:
+    except (click.exceptions.Abort, KeyboardInterrupt) as e:  # click turns Ctrl-C into Abort
         click.echo("stillbox-gen: interrupted; re-run the same command to resume", err=True)
-        sys.exit(130)
-    except KeyboardInterrupt:
-        click.echo("stillbox-gen: interrupted; re-run the same command to resume", err=True)
-        sys.exit(130)
+        terminated = isinstance(e, Terminated) or isinstance(e.__cause__, Terminated)
+        sys.exit(128 + signal.SIGTERM if terminated else 130)
     except RuntimeError as e:
         click.echo(f"stillbox-gen: failed: {e}", err=True)
+        sys.exit(1)
+    except OSError as e:
+        if not is_disk_full(e):
+            raise
+        click.echo(f"stillbox-gen: failed: {disk_full_message(e)}", err=True)
         sys.exit(1)
 
 

@@ -32,6 +32,7 @@ import numpy as np
 from . import config, formats, layout, manifest, photos
 from .config import CPU_DEVICE, ConfigError, DatasetConfig, denoise_quality
 from .formats import DatasetError
+from .lock import folder_lock
 
 #: Frames between the two images of a nominal StillBox pair (i, i + 3): the benchmark's fixed
 #: evaluation pairs, the displacement its depth targets are expressed for (3 frames of 0.1 m, as
@@ -192,8 +193,9 @@ def prepare_output(out: Path, cfg: DatasetConfig, scenes: int, device: str = CPU
 
 
 def _is_own_temporary(path: Path) -> bool:
-    """A dataset.json being written by another shard that started into the same new folder."""
-    return path.name.startswith(f".{layout.DATASET_JSON}.tmp-")
+    """A dataset.json being written by another shard that started into the same new folder, or
+    the lock file of a run (stillbox_gen.lock; left behind by a run killed before it wrote)."""
+    return path.name.startswith(f".{layout.DATASET_JSON}.tmp-") or path.name == layout.LOCK_FILE
 
 
 def pending_indices(out: Path, scenes: int, shard: tuple[int, int] = (0, 1)) -> list[int]:
@@ -276,6 +278,13 @@ def index_dataset(out: Path, run_info: dict | None = None) -> Totals:
         raise ConfigError(
             f"DATASET: '{out}' has no {layout.DATASET_JSON} (not a stillbox-gen dataset)"
         )
+    with folder_lock(out, "DATASET"):  # refused while a run writes into it
+        return _index(out, run_info)
+
+
+def _index(out: Path, run_info: dict | None) -> Totals:
+    """:func:`index_dataset` once the folder's lock is held."""
+    info_path = out / layout.DATASET_JSON
     info = json.loads(info_path.read_text())
     cfg = config.from_dict(info["config"])
     if cfg.fingerprint() != info["fingerprint"]:

@@ -9,6 +9,7 @@ Every path read from a dataset (a record's file names, the manifest's paths) goe
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import json
 import os
@@ -84,19 +85,72 @@ def file_sha256(path: Path) -> str:
 # ---------------------------------------------------------------- atomic writes
 
 
-def atomic_write_text(path: Path, text: str) -> None:
-    """Write via a temporary name in the same folder, fsync, then rename."""
+def atomic_write_bytes(path: Path, data: bytes) -> None:
+    """Write via a temporary name in the same folder, fsync, then rename. On failure the
+    temporary file is deleted, and an OSError names ``path`` (e.g. a full disk, see
+    :func:`is_disk_full`)."""
     path = Path(path)
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    with open(tmp, "w") as f:
-        f.write(text)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+    try:
+        with open(tmp, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except OSError as e:
+        tmp.unlink(missing_ok=True)
+        if e.filename is None:  # a failed write() names no file
+            raise OSError(e.errno, e.strerror, str(path)) from e
+        raise
+
+
+def atomic_write_text(path: Path, text: str) -> None:
+    """:func:`atomic_write_bytes` of ``text`` in UTF-8."""
+    atomic_write_bytes(path, text.encode())
 
 
 def atomic_write_json(path: Path, obj, indent: int | None = None) -> None:
     atomic_write_text(path, json.dumps(obj, indent=indent, allow_nan=False) + "\n")
+
+
+# ---------------------------------------------------------------- a full disk
+
+#: errno values of a write refused for lack of space: the disk is full, or the user's quota is
+DISK_FULL_ERRNOS = (errno.ENOSPC, errno.EDQUOT)
+PROBE_NAME = ".space-probe"  # written and deleted by check_space
+
+
+def is_disk_full(e: BaseException) -> bool:
+    """True for an OSError meaning no space is left (:data:`DISK_FULL_ERRNOS`)."""
+    return isinstance(e, OSError) and e.errno in DISK_FULL_ERRNOS
+
+
+def check_space(folder: Path, nbytes: int) -> None:
+    """Raise the OSError of a full disk (naming ``folder``) when ``nbytes`` bytes cannot be
+    written into ``folder`` now: a probe file is written, fsynced and deleted. For writers that
+    do not report errno (Blender's EXR output, OpenCV's imwrite), after one of their writes
+    failed."""
+    probe = Path(folder) / PROBE_NAME
+    try:
+        with open(probe, "wb") as f:
+            f.write(bytes(nbytes))
+            f.flush()
+            os.fsync(f.fileno())
+    except OSError as e:
+        if is_disk_full(e):
+            raise OSError(e.errno, e.strerror, str(folder)) from None
+        raise
+    finally:
+        probe.unlink(missing_ok=True)
+
+
+def disk_full_message(e: OSError) -> str:
+    """One line for a full disk: what could not be written, and how to go on."""
+    where = f" writing '{e.filename}'" if e.filename else ""
+    return (
+        f"disk full{where} ({e.strerror}); finished scenes are kept: free space, then re-run "
+        "the same command to resume"
+    )
 
 
 def remove_tree(path: Path) -> None:

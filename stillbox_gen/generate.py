@@ -21,6 +21,7 @@ from tqdm import tqdm
 
 from . import dataset, formats, layout
 from .config import CPU_DEVICE, DatasetConfig
+from .lock import folder_lock
 from .scene import sample_scene
 from .workers import LocalPool
 
@@ -168,6 +169,8 @@ class _Scheduler:
         except self.pool.died_errors:
             return spec
         except Exception as e:  # a scene that cannot render: retried, then fatal
+            if formats.is_disk_full(e):  # no retry can help: stop (cli.main says it in a line)
+                raise
             self._retry([spec], f"{type(e).__name__}: {e}")
             self._submit_next()
             return None
@@ -250,8 +253,15 @@ def generate(cfg: DatasetConfig, opts: RunOptions, announce=lambda: None) -> Sum
     With ``opts.shard`` = (I, N), only scenes k % N == I are rendered; the folder is indexed
     (metadata, manifest, dataset.json complete) by whichever shard finds every scene present,
     or later by :func:`dataset.index_dataset`. The result equals an unsharded run with the same
-    seed.
+    seed. A second run on the same ``opts.out`` (the same shard, or any shard beside an
+    unsharded run) is refused with a FolderInUse error while this one runs (stillbox_gen.lock).
     """
+    with folder_lock(opts.out, "--out", opts.shard):  # refuses a second run on --out
+        return _generate(cfg, opts, announce)
+
+
+def _generate(cfg: DatasetConfig, opts: RunOptions, announce) -> Summary:
+    """:func:`generate` once the folder's lock is held."""
     device = CPU_DEVICE if opts.backend == "ray" else opts.device
     devices = dataset.prepare_output(opts.out, cfg, opts.scenes, device)
     announce()

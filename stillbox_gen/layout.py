@@ -6,6 +6,7 @@
     DIR/
       dataset.json          DATASET_JSON: generator, parameters, counts; "complete" when done
       manifest.parquet      MANIFEST: one row per frame
+      .stillbox.lock        LOCK_FILE: held by the run writing (stillbox_gen.lock), then deleted
       <chunk>/              chunk_name(k): scene k lives in chunk k // CHUNK_SIZE
         metadata.json       METADATA_JSON: {"args": {...}, "scenes": [record, ...]}
         RGB_<s>_<f>.png     rgb_name(s, f): frame f of scene s = local_index(k)
@@ -26,6 +27,8 @@ MANIFEST = "manifest.parquet"
 METADATA_JSON = "metadata.json"
 RECORDS_DIR = ".records"
 STATS_FILES = ("stats.json", "stats.png")  # what ``stillbox-gen stats`` may add to the root
+# the lock of a run writing into the folder (stillbox_gen.lock); left behind only by a killed run
+LOCK_FILE = ".stillbox.lock"
 
 
 def chunk_name(index: int) -> str:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
@@ -96,9 +95,9 @@ def write_manifest(path: Path, records: list[dict], seed: int, shares) -> pa.Tab
     shards finishing together may index at once), then rename; returns the table."""
     rows = [row for r in records for row in manifest_rows(r, seed, shares)]
     table = pa.Table.from_pylist(rows, schema=MANIFEST_SCHEMA)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    pq.write_table(table, tmp)
-    tmp.replace(path)
+    sink = pa.BufferOutputStream()
+    pq.write_table(table, sink)
+    formats.atomic_write_bytes(path, sink.getvalue().to_pybytes())
     return table
 
 

@@ -28,6 +28,7 @@ from .dataset import (
     prepare_output,
 )
 from .formats import DatasetError
+from .lock import folder_lock
 
 
 def _info(folder: Path) -> dict:
@@ -54,10 +55,16 @@ def merge_datasets(out: Path, sources: list[Path]) -> tuple[int, Totals]:
 
     Returns (scenes copied now, what the indexed dataset holds). Raises ConfigError (naming the
     folder) when the sources disagree, OUT holds another dataset, or scenes are missing from
-    every source.
+    every source, FolderInUse when another run writes into ``out`` (stillbox_gen.lock).
     """
     if not sources:
         raise ConfigError("SOURCES: give at least one dataset folder to merge")
+    with folder_lock(out, "OUT"):  # refused while another run writes into OUT
+        return _merge(out, sources)
+
+
+def _merge(out: Path, sources: list[Path]) -> tuple[int, Totals]:
+    """:func:`merge_datasets` once OUT's lock is held."""
     infos = [_info(s) for s in sources]
     first = infos[0]
     for src, info in zip(sources, infos, strict=True):

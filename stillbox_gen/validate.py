@@ -193,7 +193,7 @@ def validate_dataset(root: Path, check_pixels: bool = True) -> tuple[list[str], 
     n_scenes, n_frames = info["scenes"], info["frames_per_scene"]
     n_chunks = layout.chunk_count(n_scenes)
     expected_dirs = {str(c) for c in range(n_chunks)}
-    root_files = {DATASET_JSON, MANIFEST, *layout.STATS_FILES}
+    root_files = {DATASET_JSON, MANIFEST, *layout.STATS_FILES, layout.LOCK_FILE}
     for p in sorted(root.iterdir()):
         if p.is_dir() and p.name not in expected_dirs:
             problems.append(

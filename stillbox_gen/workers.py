@@ -9,22 +9,77 @@ every backend (see also stillbox_gen.ray_pool.RayPool):
 - ``died_errors``: exceptions meaning a worker died (its pool must be replaced);
 - ``kill()``: stop crashed or hung workers at once; ``shutdown()``: wait for them to end.
 
+Workers end with the driver (:func:`exit_with_parent`), and SIGTERM of the driver is turned into a
+KeyboardInterrupt (:func:`sigterm_as_interrupt`, used by the command line) so that the run loop
+kills its workers and exits as on Ctrl-C.
+
 :func:`choose_device` turns ``--device`` into the Cycles device the workers use, asking Blender
 (:func:`find_gpus`, in a subprocess) which GPU backends have a device.
 """
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import json
 import multiprocessing
+import os
+import signal
 import subprocess
 import sys
+import threading
+import time
 from concurrent.futures import Future, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 
 from .config import CPU_DEVICE, GPU_BACKENDS, ConfigError, DatasetConfig
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (what ``timeout`` and job schedulers send), handled as Ctrl-C."""
+
+
+def _raise_terminated(signum: int, frame: object = None) -> None:
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)  # a second SIGTERM ends the process at once
+    raise Terminated()
+
+
+@contextlib.contextmanager
+def sigterm_as_interrupt():
+    """Within the block, SIGTERM raises :class:`Terminated` (a KeyboardInterrupt) in the main
+    thread, so it stops the workers and exits as Ctrl-C does (exit code 128 + 15); in another
+    thread, where Python cannot set signal handlers, nothing changes."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGTERM, _raise_terminated)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+@contextlib.contextmanager
+def sigterm_deferred():
+    """Within :func:`sigterm_as_interrupt`, hold a SIGTERM back until the end of the block (then
+    raise :class:`Terminated`): around the spawn of a worker, which an exception would cut short
+    between starting the process and sending it its start-up data (the new process would then
+    print an EOFError traceback)."""
+    if (
+        threading.current_thread() is not threading.main_thread()
+        or signal.getsignal(signal.SIGTERM) is not _raise_terminated
+    ):
+        yield
+        return
+    got: list[int] = []
+    signal.signal(signal.SIGTERM, lambda signum, frame: got.append(signum))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, _raise_terminated)
+        if got:
+            _raise_terminated(got[0])
 
 
 def init_worker(
@@ -104,14 +159,60 @@ def choose_device(choice: str, backend: str = "local") -> tuple[str, str]:
     )
 
 
+PR_SET_PDEATHSIG = 1  # prctl(2) option: the signal a process gets when its parent ends
+PARENT_POLL_SECONDS = 1.0  # without prctl: how often a worker checks that its parent lives
+
+
+def exit_with_parent(parent: int) -> None:
+    """End this process when its parent, process ``parent``, ends, however it ends (kill -9
+    included): a Blender worker (about 500 MB) must not outlive the run that started it.
+
+    On Linux the kernel sends SIGKILL at the parent's death (prctl PR_SET_PDEATHSIG): immediate,
+    even in the middle of a render (which may hold the GIL for minutes, stalling any thread),
+    and free. The kernel tracks the thread that spawned the process; the pool's workers are
+    spawned by the main thread or the pool's manager thread, which both live as long as the
+    pool's workers do. Elsewhere, a daemon thread polls os.getppid() every
+    PARENT_POLL_SECONDS. Either way, a parent that died before this call ends the process now.
+    """
+    if sys.platform.startswith("linux"):
+        import ctypes
+        import signal
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        if libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0) != 0:
+            _poll_parent(parent)
+    else:
+        _poll_parent(parent)
+    if os.getppid() != parent:  # the parent died before the death signal was set up
+        os._exit(1)
+
+
+def _poll_parent(parent: int) -> None:
+    """A daemon thread ending the process once ``parent`` is no longer its parent."""
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(PARENT_POLL_SECONDS)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="exit-with-parent", daemon=True).start()
+
+
+def _init_local_worker(parent: int, *init_args) -> None:
+    """Initializer of a process_pool worker: die with the driver, then :func:`init_worker`."""
+    exit_with_parent(parent)
+    init_worker(*init_args)
+
+
 def process_pool(workers: int, init_args: tuple, recycle_after: int | None = None):
     """A ProcessPoolExecutor of ``workers`` spawned processes set up by :func:`init_worker`
-    (each replaced after ``recycle_after`` scenes when given). Submit :func:`render_scene`."""
+    (each replaced after ``recycle_after`` scenes when given), each ending when this process
+    ends (:func:`exit_with_parent`). Submit :func:`render_scene`."""
     return ProcessPoolExecutor(
         max_workers=workers,
         mp_context=multiprocessing.get_context("spawn"),
-        initializer=init_worker,
-        initargs=init_args,
+        initializer=_init_local_worker,
+        initargs=(os.getpid(), *init_args),
         max_tasks_per_child=recycle_after,
     )
 
@@ -133,7 +234,8 @@ class LocalPool:
         self._pool = process_pool(workers, worker_init_args(cfg, threads, device), recycle_after)
 
     def submit(self, spec: dict, tmp_dir: Path, image_format: str, legacy: bool) -> Future:
-        return self._pool.submit(render_scene, spec, str(tmp_dir), image_format, legacy)
+        with sigterm_deferred():  # submit may spawn a worker
+            return self._pool.submit(render_scene, spec, str(tmp_dir), image_format, legacy)
 
     def kill(self) -> None:
         """Stop workers that crashed or hang (kills the processes, waits for nothing)."""

@@ -98,6 +98,48 @@ def file_tree(root: Path) -> dict[str, bytes]:
     }
 
 
+# ---------------------------------------------------------------- processes (Linux /proc)
+
+
+def _proc_stat(pid: int) -> tuple[int, int] | None:
+    """(parent pid, start time in clock ticks) of a live process (None: gone or a zombie)."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return None
+    fields = stat[stat.rindex(")") + 2 :].split()
+    return None if fields[0] == "Z" else (int(fields[1]), int(fields[19]))
+
+
+def descendants(root: int) -> dict[int, int]:
+    """{pid: start time} of every live process below ``root`` (snapshot it before ``root`` dies:
+    orphans are re-parented and no longer found below it)."""
+    children: dict[int, list[tuple[int, int]]] = {}
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit() and (st := _proc_stat(int(entry.name))):
+            children.setdefault(st[0], []).append((int(entry.name), st[1]))
+    found, todo = {}, [root]
+    while todo:
+        for pid, start in children.get(todo.pop(), []):
+            found[pid] = start
+            todo.append(pid)
+    return found
+
+
+def cmdline(pid: int) -> bytes:
+    """The NUL-separated command line of a process (b"" when gone)."""
+    try:
+        return Path(f"/proc/{pid}/cmdline").read_bytes()
+    except OSError:
+        return b""
+
+
+def alive_of(procs: dict[int, int]) -> list[int]:
+    """Those of ``procs`` (a :func:`descendants` snapshot) still running (same pid and start
+    time: not a reused pid)."""
+    return [pid for pid, start in procs.items() if (st := _proc_stat(pid)) and st[1] == start]
+
+
 @pytest.fixture(scope="session")
 def photo_dir(tmp_path_factory) -> Path:
     """A folder of a few synthetic 'photos' (smooth colour noise) for --textures."""

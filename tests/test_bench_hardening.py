@@ -296,6 +296,57 @@ def test_resumed_epoch_logs_the_uninterrupted_train_loss(
     assert [int(r["step"]) for r in steps] == list(range(1, 15))
 
 
+def _tb_steps(folder: Path, tag: str) -> tuple[list[int], list[int]]:
+    """Steps of ``tag`` as TensorBoard's EventAccumulator shows them, and as the event files hold
+    them (every record of every file, in file order: what a reader without purging sees)."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+    from tensorboard.backend.event_processing.event_file_loader import EventFileLoader
+
+    acc = EventAccumulator(str(folder))
+    acc.Reload()
+    shown = [e.step for e in acc.Scalars(tag)]
+    raw = [
+        e.step
+        for path in sorted(folder.glob("events.out.tfevents.*"))
+        for e in EventFileLoader(str(path)).Load()
+        if any(v.tag == tag for v in e.summary.value)
+    ]
+    return shown, raw
+
+
+@pytest.mark.render
+def test_resume_keeps_one_tensorboard_point_per_step(tiny_dataset, tmp_path, monkeypatch):
+    """Events logged after the checkpoint a run resumes from (as a kill -9 between checkpoints
+    leaves them: here the run went on to step 14, then last.pt was put back to its step-3 state,
+    and the newest event file got a record cut short) are dropped on --resume: TensorBoard and
+    the raw event files hold each train/loss and epoch step once, none missing."""
+    cfg = _config(tiny_dataset, tmp_path / "run")
+    out, loss, calls = Path(cfg.out), train.multiscale_loss, []
+
+    def loss_then_ctrl_c(*args):
+        calls.append(1)
+        if len(calls) == 3:
+            signal.raise_signal(signal.SIGINT)
+        return loss(*args)
+
+    monkeypatch.setattr(train, "multiscale_loss", loss_then_ctrl_c)
+    with pytest.raises(KeyboardInterrupt):
+        _train(cfg)
+    monkeypatch.setattr(train, "multiscale_loss", loss)
+    last = runfolder.checkpoint_path(out, "last")
+    at_step_3 = last.read_bytes()
+    _train(dataclasses.replace(cfg, resume=True))
+    assert _tb_steps(out / "tb", "train/loss")[1] == list(range(1, 15))
+    last.write_bytes(at_step_3)
+    newest = sorted((out / "tb").glob("events.out.tfevents.*"))[-1]
+    with open(newest, "ab") as f:
+        f.write(b"\x30\x00\x00\x00")  # a record cut short by the kill
+    _train(dataclasses.replace(cfg, resume=True))
+    assert _tb_steps(out / "tb", "train/loss") == (list(range(1, 15)),) * 2
+    assert _tb_steps(out / "tb", "epoch/val_mae") == ([7, 14],) * 2
+    assert [int(r["step"]) for r in _rows(out / "steps.csv")] == list(range(1, 15))
+
+
 @pytest.mark.render
 def test_rerun_after_a_kill_before_the_first_checkpoint_starts_logs_afresh(
     tiny_dataset,

@@ -17,7 +17,16 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
-from conftest import CLI, assert_user_error, file_tree, invoke_cli, run_cli
+from conftest import (
+    CLI,
+    alive_of,
+    assert_user_error,
+    cmdline,
+    descendants,
+    file_tree,
+    invoke_cli,
+    run_cli,
+)
 
 pytestmark = pytest.mark.render
 
@@ -86,42 +95,6 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def _proc_stat(pid: int) -> tuple[int, int] | None:
-    """(parent pid, start time in clock ticks) of a live process (None: gone or a zombie)."""
-    try:
-        stat = Path(f"/proc/{pid}/stat").read_text()
-    except OSError:
-        return None
-    fields = stat[stat.rindex(")") + 2 :].split()
-    return None if fields[0] == "Z" else (int(fields[1]), int(fields[19]))
-
-
-def _descendants(root: int) -> dict[int, int]:
-    """{pid: start time} of every live process below ``root``."""
-    children: dict[int, list[tuple[int, int]]] = {}
-    for entry in Path("/proc").iterdir():
-        if entry.name.isdigit() and (st := _proc_stat(int(entry.name))):
-            children.setdefault(st[0], []).append((int(entry.name), st[1]))
-    found, todo = {}, [root]
-    while todo:
-        for pid, start in children.get(todo.pop(), []):
-            found[pid] = start
-            todo.append(pid)
-    return found
-
-
-def _cmdline(pid: int) -> bytes:
-    try:
-        return Path(f"/proc/{pid}/cmdline").read_bytes()
-    except OSError:
-        return b""
-
-
-def _alive(procs: dict[int, int]) -> list[int]:
-    """Those of ``procs`` still running (same pid and start time: not a reused pid)."""
-    return [pid for pid, start in procs.items() if (st := _proc_stat(pid)) and st[1] == start]
-
-
 @dataclass
 class RayHead:
     address: str
@@ -158,7 +131,7 @@ def _run_ray_head(temp_dir: Path):
             time.sleep(0.2)
         yield RayHead(f"127.0.0.1:{port}", head.pid)
     finally:
-        procs = _descendants(head.pid)
+        procs = descendants(head.pid)
         head.terminate()
         try:
             head.wait(timeout=120)
@@ -166,9 +139,9 @@ def _run_ray_head(temp_dir: Path):
             head.kill()
             head.wait()
         deadline = time.time() + 30
-        while _alive(procs) and time.time() < deadline:
+        while alive_of(procs) and time.time() < deadline:
             time.sleep(0.2)
-        for pid in _alive(procs):
+        for pid in alive_of(procs):
             with contextlib.suppress(ProcessLookupError):
                 os.kill(pid, signal.SIGKILL)
 
@@ -186,11 +159,11 @@ def test_stopping_the_test_cluster_leaves_other_ray_instances_alone():
     cluster, and nothing the test cluster started is left running."""
     pytest.importorskip("ray", reason="the [ray] extra is not installed")
     with _ray_head() as user:
-        theirs = _descendants(user.pid)
+        theirs = descendants(user.pid)
         with _ray_head() as ours:
-            mine = _descendants(ours.pid)
-        assert mine and _alive(mine) == []
-        assert theirs and sorted(_alive(theirs)) == sorted(theirs)
+            mine = descendants(ours.pid)
+        assert mine and alive_of(mine) == []
+        assert theirs and sorted(alive_of(theirs)) == sorted(theirs)
 
 
 def _ray_cli(address: str, *args, check: bool = True) -> subprocess.CompletedProcess:
@@ -227,8 +200,8 @@ def test_ray_actor_killed_mid_run_is_replaced_and_its_scene_retried(
         time.sleep(0.05)
     actors = {  # this cluster's render actors only, oldest first
         pid: start
-        for pid, start in _descendants(ray_cluster.pid).items()
-        if _cmdline(pid).startswith(b"ray::RenderActor")
+        for pid, start in descendants(ray_cluster.pid).items()
+        if cmdline(pid).startswith(b"ray::RenderActor")
     }
     assert actors, "no Ray actor process found"
     os.kill(min(actors, key=actors.get), signal.SIGKILL)

@@ -125,10 +125,24 @@ def _channels(path: Path) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(rgba[..., :3], dtype=np.float32), np.asarray(depth, dtype=np.float32)
 
 
+def _imwrite(path: Path, img: np.ndarray, params: list[int]) -> None:
+    """cv2.imwrite, raising OSError naming ``path`` when it fails (it only returns False)."""
+    if not cv2.imwrite(str(path), img, params):
+        raise OSError(f"cannot write '{path}'")
+
+
+def _probe_bytes(render) -> int:
+    """Bytes a frame needs on disk at most: its uncompressed temporary EXR (half RGBA, float
+    depth: 12 bytes a pixel) and headers; check_space's probe size after a failed write."""
+    return render.resolution_x * render.resolution_y * 16 + 65536
+
+
 def render_scene(spec: dict, out_dir: str, image_format: str, legacy: bool) -> dict:
     """Render every frame of a SceneSpec dict into ``out_dir`` (a temporary folder).
 
-    Files are named as in formats.py; returns timing and memory statistics.
+    Files are named as in formats.py; returns timing and memory statistics. When a file cannot
+    be written or read back for lack of space, raises the OSError of a full disk
+    (formats.is_disk_full): the run stops there instead of retrying the scene.
     """
     t0 = time.perf_counter()
     out = Path(out_dir)
@@ -153,20 +167,25 @@ def render_scene(spec: dict, out_dir: str, image_format: str, legacy: bool) -> d
     scene.render.filepath = str(out / "_render_##")
     _STATE["job"] = {"camera": cam, "poses": poses, "seed": spec["seed"]}
     try:
-        bpy.ops.render.render(animation=True)
-    finally:
-        _STATE["job"] = None
-    for f in range(len(poses)):
-        tmp = Path(scene.render.frame_path(frame=f))
-        rgb, depth = _channels(tmp)
-        tmp.unlink()
-        bgr = formats.linear_to_srgb8(rgb)[..., ::-1]
-        cv2.imwrite(str(out / layout.rgb_name(local, f, image_format)), bgr, params)
-        formats.write_depth_exr(out / layout.depth_name(local, f), depth)
-        if legacy:
-            if image_format != "jpg":
-                cv2.imwrite(str(out / layout.rgb_name(local, f, "jpg")), bgr, params)
-            np.save(out / layout.depth_name(local, f, "npy"), depth)
+        try:
+            bpy.ops.render.render(animation=True)
+        finally:
+            _STATE["job"] = None
+        for f in range(len(poses)):
+            tmp = Path(scene.render.frame_path(frame=f))
+            rgb, depth = _channels(tmp)
+            tmp.unlink()
+            bgr = formats.linear_to_srgb8(rgb)[..., ::-1]
+            _imwrite(out / layout.rgb_name(local, f, image_format), bgr, params)
+            formats.write_depth_exr(out / layout.depth_name(local, f), depth)
+            if legacy:
+                if image_format != "jpg":
+                    _imwrite(out / layout.rgb_name(local, f, "jpg"), bgr, params)
+                np.save(out / layout.depth_name(local, f, "npy"), depth)
+    except Exception as e:
+        if not formats.is_disk_full(e):  # Blender and OpenCV write without reporting errno
+            formats.check_space(out, _probe_bytes(scene.render))
+        raise
     _STATE["scenes"] += 1
     return {
         "index": spec["index"],
