@@ -236,6 +236,10 @@ def check_resumed_settings(cfg: TrainConfig, ck: dict, where: str) -> None:
 STAGE_KEYS = ("stage_loss_sum", "stage_steps", "stage_samples", "stage_wait", "stage_seconds")
 
 
+class NonFiniteLoss(ValueError):
+    """Training stopped on a NaN or infinite loss (one line: step, epoch, what is kept)."""
+
+
 class Trainer:
     def __init__(self, cfg: TrainConfig):
         self.cfg = cfg
@@ -415,7 +419,11 @@ class Trainer:
     def checkpoint(self, name: str) -> None:
         """Save ``checkpoints/<name>.pt`` (main process only): weights, optimiser, scheduler,
         counters, model name, nominal displacement (metres), shift, depth range (metres), the
-        training camera (frame size in pixels, horizontal field of view in degrees) and config."""
+        training camera (frame size in pixels, horizontal field of view in degrees) and config.
+        Weights that are no longer finite are never saved (NonFiniteLoss, in every process)."""
+        state = self.model.state_dict().values()
+        if not all(torch.isfinite(t).all() for t in state if t.is_floating_point()):
+            self._stop("the weights are not finite", self.state["global_step"])
         if not self.is_main_process:
             return
         runfolder.save_checkpoint(
@@ -432,6 +440,31 @@ class Trainer:
                 "camera": self.camera,
                 "config": asdict(self.cfg),
             },
+        )
+
+    def _finite_everywhere(self, loss: float) -> bool:
+        """True when the step's loss is finite in every process (one all-reduce under DDP, so
+        all processes stop together)."""
+        finite = math.isfinite(loss)
+        if self.world > 1:
+            flag = torch.tensor([0.0 if finite else 1.0], device=self.device)
+            torch.distributed.all_reduce(flag, op=torch.distributed.ReduceOp.MAX)
+            finite = flag.item() == 0.0
+        return finite
+
+    def _stop(self, what: str, step: int) -> None:
+        """Raise NonFiniteLoss: ``what`` (a NaN or infinite loss or weights) at optimiser step
+        ``step``. Nothing is saved after it, so checkpoints/last.pt stays the last one with
+        finite weights; TensorBoard is closed first."""
+        last = runfolder.checkpoint_path(self.run, "last")
+        if self.is_main_process:
+            self.tb.close()
+        if self.world > 1:
+            torch.distributed.destroy_process_group()
+        kept = f"{last} is kept" if last.exists() else "no checkpoint was saved"
+        raise NonFiniteLoss(
+            f"training stopped: {what} at step {step} (epoch {self.state['epoch']}); try a "
+            f"smaller --lr (this run: {self.cfg.lr:g}); {kept}"
         )
 
     def total_steps(self) -> int:
@@ -526,6 +559,9 @@ class Trainer:
             for batch in self.loader:
                 st["stage_wait"] += time.perf_counter() - t_data
                 value = self.train_step(batch).item()
+                if not self._finite_everywhere(value):
+                    bar.close()
+                    self._stop(f"the loss is {value}", st["global_step"] + 1)
                 st["global_step"] += 1
                 st["step_in_epoch"] += 1
                 st["stage_loss_sum"] += value
