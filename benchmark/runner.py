@@ -91,6 +91,12 @@ def score_checkpoint(
     if split_data is None or split_data[2].shift != shift:
         split_data = eval_split(data, split, shift, progress)
     split, scenes, dataset = split_data
+    frames = min(s.frames for s in scenes)
+    if shift >= frames:
+        raise ValueError(
+            f"--ckpt {ckpt}: its 'shift' {shift} is not below the {frames} frames of the "
+            f"scenes of '{data}'"
+        )
     depth_range = ck.get("depth_range", [0.0, MAX_DEPTH])
     clamp = registry.output_clamp(depth_range)
     method = Method(
