@@ -29,13 +29,22 @@ MEDIAN_FRAMES = 2000  # at most this many training frames (evenly spread) for th
 ORACLE_FLOW_NOISE_PX = 0.05  # oracle-flow is also scored with this much flow noise (sensitivity)
 
 
-def eval_split(data: Path, split: str, shift: int, progress: bool) -> tuple[str, list, PairDataset]:
-    """(split actually used, its scenes, eval-mode PairDataset); test falls back to val."""
+def eval_split(
+    data: Path, split: str, shift: int, progress: bool, shift_source: str = "--shift"
+) -> tuple[str, list, PairDataset]:
+    """(split actually used, its scenes, eval-mode PairDataset); test falls back to val. A
+    ``shift`` (frames) not below the scenes' frame count is a ValueError naming
+    ``shift_source``, raised before any frame is read."""
     scenes = load_scenes(data, split)
     if not scenes and split == "test":
         split, scenes = "val", load_scenes(data, "val")
     if not scenes:
         raise ValueError(f"--data: '{data}' has no scenes in split '{split}'")
+    frames = min(s.frames for s in scenes)
+    if shift >= frames:
+        raise ValueError(
+            f"{shift_source} {shift} is not below the {frames} frames of the scenes of '{data}'"
+        )
     return split, scenes, PairDataset(FrameStore(scenes, progress=progress), "eval", shift)
 
 
@@ -89,14 +98,8 @@ def score_checkpoint(
     model.to(dev)
     shift = ck.get("shift", NOMINAL_SHIFT)
     if split_data is None or split_data[2].shift != shift:
-        split_data = eval_split(data, split, shift, progress)
+        split_data = eval_split(data, split, shift, progress, f"--ckpt {ckpt}: its 'shift'")
     split, scenes, dataset = split_data
-    frames = min(s.frames for s in scenes)
-    if shift >= frames:
-        raise ValueError(
-            f"--ckpt {ckpt}: its 'shift' {shift} is not below the {frames} frames of the "
-            f"scenes of '{data}'"
-        )
     depth_range = ck.get("depth_range", [0.0, MAX_DEPTH])
     clamp = registry.output_clamp(depth_range)
     method = Method(
