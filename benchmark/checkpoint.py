@@ -2,7 +2,8 @@
 
 Checkpoints are written by ``runfolder.save_checkpoint`` (``Trainer.checkpoint`` decides what
 goes in). Reading unpickles with ``torch.load(weights_only=True)``: tensors and plain data only.
-A file that is not such a checkpoint, or whose weights do not fit the network, is a ValueError of
+A file that is not such a checkpoint, whose weights do not fit the network, or whose numbers
+(displacement, shift, depth range, camera: :func:`check_metadata`) are unusable is a ValueError of
 one line naming the flag and the file.
 """
 

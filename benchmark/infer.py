@@ -48,11 +48,11 @@ from .multishift import (
 )
 
 MIN_MAX_SHIFT = 8  # smallest default --max-shift (frames)
+MAX_MAX_SHIFT = 1000  # largest default --max-shift (frames kept in memory)
 #: largest side (pixels) of the network input (--res): the preview puts frame and depth side
 #: by side, 2·W wide, within the mp4v encoder's 8191 px; DepthNet's forward pass at 2048x2048
 #: takes 0.8 GB and 4 s on one CPU thread (a frame's --shifts 4 pairs: about 3 GB)
 MAX_RES = 2048
-MAX_MAX_SHIFT = 1000  # largest default --max-shift (frames kept in memory)
 FIRST_FRAME = "frame 0 has no earlier frame: no depth for it"
 CSV_COLUMNS = ("frame", "status", "shifts", "displacements_m", "d_opt_m", "mean_depth_m")
 

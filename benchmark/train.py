@@ -237,7 +237,8 @@ STAGE_KEYS = ("stage_loss_sum", "stage_steps", "stage_samples", "stage_wait", "s
 
 
 class NonFiniteLoss(ValueError):
-    """Training stopped on a NaN or infinite loss (one line: step, epoch, what is kept)."""
+    """Training stopped on a NaN or infinite loss or weights (one line: step, epoch, what is
+    kept)."""
 
 
 class Trainer:
