@@ -2,7 +2,8 @@
 
 Checkpoints are written by ``runfolder.save_checkpoint`` (``Trainer.checkpoint`` decides what
 goes in). Reading unpickles with ``torch.load(weights_only=True)``: tensors and plain data only.
-A file that is not such a checkpoint, or whose weights do not fit the network, is a ValueError of
+A file that is not such a checkpoint, whose weights do not fit the network, or whose numbers
+(displacement, shift, depth range, camera: :func:`check_metadata`) are unusable is a ValueError of
 one line naming the flag and the file.
 """
 
@@ -73,7 +74,52 @@ def load_checkpoint(path: str | Path, flag: str | None = None) -> dict:
         raise ValueError(f"{where}: unknown model name {name!r} in the checkpoint")
     if not isinstance(ck["model"], dict):
         raise ValueError(f"{where}: its 'model' entry is not a state_dict")
+    check_metadata(ck, where)
     return ck
+
+
+def _real(value) -> bool:
+    """A finite int or float (not a bool)."""
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def _count(value) -> bool:
+    """An int >= 1 (not a bool)."""
+    return isinstance(value, int) and not isinstance(value, bool) and value >= 1
+
+
+def check_metadata(ck: dict, where: str) -> None:
+    """The numbers a checkpoint's users rely on, checked once for every reader (eval, infer,
+    eval-multishift, run --pretrained/--resume): ``nominal_displacement`` a finite number of
+    metres > 0; optional ``shift`` an integer >= 1 (frames); ``depth_range`` [lo, hi] metres with
+    0 <= lo < hi <= MAX_DEPTH; ``camera`` width and height integers >= 1 (pixels) and ``fov_deg``
+    in (0, 180) degrees. Otherwise a ValueError of one line naming ``where`` (flag and file) and
+    the field."""
+    from stillbox_gen.dataset import MAX_DEPTH
+
+    def bad(field: str, value, rule: str) -> ValueError:
+        return ValueError(f"{where}: its '{field}' is {value!r}; it must be {rule}")
+
+    d0 = ck["nominal_displacement"]
+    if not (_real(d0) and d0 > 0):
+        raise bad("nominal_displacement", d0, "a positive number of metres")
+    if "shift" in ck and not _count(ck["shift"]):
+        raise bad("shift", ck["shift"], "a frame shift of at least 1")
+    if "depth_range" in ck:
+        r = ck["depth_range"]
+        ok = isinstance(r, (list, tuple)) and len(r) == 2 and all(map(_real, r))
+        if not (ok and 0 <= r[0] < r[1] <= MAX_DEPTH):
+            raise bad("depth_range", r, f"[lo, hi] metres with 0 <= lo < hi <= {MAX_DEPTH:g}")
+    cam = ck.get("camera")
+    if cam is not None:
+        if not isinstance(cam, dict):
+            raise bad("camera", cam, "a dict of width, height and fov_deg")
+        for key in ("width", "height"):
+            if not _count(cam.get(key)):
+                raise bad(f"camera.{key}", cam.get(key), "a number of pixels of at least 1")
+        fov = cam.get("fov_deg")
+        if not (_real(fov) and 0 < fov < 180):
+            raise bad("camera.fov_deg", fov, "a field of view in (0, 180) degrees")
 
 
 def load_weights(model: torch.nn.Module, ck: dict, where: str, name: str) -> None:
@@ -122,10 +168,7 @@ def _training_camera(ck: dict, where: str) -> dict:
                 f"{where}: no training camera (the checkpoint has none and its dataset "
                 f"'{data}' is not readable); give --train-fov DEG and --res WxH"
             ) from None
-    try:
-        return {k: t(cam[k]) for k, t in (("width", int), ("height", int), ("fov_deg", float))}
-    except (KeyError, TypeError, ValueError):
-        raise ValueError(f"{where}: the checkpoint's training camera is incomplete") from None
+    return {"width": cam["width"], "height": cam["height"], "fov_deg": float(cam["fov_deg"])}
 
 
 def depth_network(
@@ -159,13 +202,8 @@ def depth_network(
     model = registry.build_model(name)
     load_weights(model, ck, where, name)
     model.eval()
-    try:
-        lo, hi = (float(v) for v in ck.get("depth_range", (0.0, MAX_DEPTH)))
-        d0 = float(ck["nominal_displacement"])
-    except (TypeError, ValueError):
-        raise ValueError(f"{where}: unreadable depth_range or nominal_displacement") from None
-    if not (0 <= lo < hi and d0 > 0 and math.isfinite(hi) and math.isfinite(d0)):
-        raise ValueError(f"{where}: depth_range [{lo}, {hi}] m or d0 {d0} m is not usable")
+    lo, hi = (float(v) for v in ck.get("depth_range", (0.0, MAX_DEPTH)))  # load_checkpoint
+    d0 = float(ck["nominal_displacement"])  # checked them (check_metadata)
     info = camera if camera is not None else _training_camera(ck, where)
     info = {**info, "depth_range": [lo, hi], "clamp": registry.output_clamp((lo, hi))}
     return model, DepthScale(theta_max=hi, d0=d0), {**info, "model_name": name}

@@ -17,7 +17,7 @@ from stillbox_gen.dataset import MAX_DEPTH, default_root
 
 from . import registry
 from . import speed as speed_table
-from .config import EVAL_BATCH_SIZE, MULTISHIFT_MAX_SHIFT, default
+from .config import EVAL_BATCH_SIZE, MAX_SEED, MULTISHIFT_MAX_SHIFT, default
 from .models import count_parameters
 from .multishift import BETA_MAX, BETA_MEAN, BETA_MIN, EMA_LAMBDA
 from .registry import CLAMPED_RECIPE, DEPTH_RECIPE
@@ -92,7 +92,15 @@ def _training_options(o: dict) -> None:
         raise UserError(f"--ckpt-every: must be 0 (epoch ends only) or more, got {o['ckpt_every']}")
     if o["threads"] < 0:
         raise UserError(f"--threads: must be 0 (torch default) or more, got {o['threads']}")
+    if o["seed"] is not None and not 0 <= o["seed"] <= MAX_SEED:
+        raise UserError(f"--seed: must be an integer from 0 to {MAX_SEED}, got {o['seed']}")
     _device(o["device"])
+
+
+def _is_default(name: str) -> bool:
+    """True when the current command's option ``name`` was not given (its default applies)."""
+    source = click.get_current_context().get_parameter_source(name)
+    return source is click.core.ParameterSource.DEFAULT
 
 
 def _models_option(value: str) -> list[str]:
@@ -255,6 +263,8 @@ def run(model: str, data: Path, out: Path | None, **o) -> None:
         raise UserError(f"--out: '{out}' is a file")
     if not o["resume"] and checkpoint_path(out, "last").exists():
         raise UserError(f"--out: '{out}' already holds a run; add --resume or choose another --out")
+    if o["resume"] and _is_default("seed"):
+        o["seed"] = None  # the run's own (runner.train_config)
     _training_options(o)
     o["depth_range"] = _clamp_option(o.pop("clamp"))  # range and --shift: Trainer.setup
     if o["pretrained"] is not None and not o["pretrained"].is_file():
@@ -371,7 +381,10 @@ def report(runs: tuple[Path, ...], out: Path) -> None:
     missing = [str(r) for r in runs if not has_summary(r)]
     if missing:
         raise UserError(f"RUNS: no {SUMMARY_JSON} in {', '.join(missing)}")
-    click.echo(write_comparison(list(runs), out))
+    try:
+        click.echo(write_comparison(list(runs), out))
+    except ValueError as e:  # an unreadable summary.json or pixels.npz, or an --out not made
+        raise UserError(str(e)) from None
 
 
 @cli.command()

@@ -17,6 +17,8 @@ EVAL_BATCH_SIZE = 64  # pairs per forward pass when scoring (results do not depe
 #: eval-multishift's largest frame shift (frames; 1.2 m at StillBox's 0.1 m per frame): frames
 #: t >= it of each sequence are scored
 MULTISHIFT_MAX_SHIFT = 12
+#: the largest --seed: torch.manual_seed takes an unsigned 64-bit integer
+MAX_SEED = 2**64 - 1
 
 
 @dataclass

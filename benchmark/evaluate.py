@@ -136,7 +136,7 @@ def evaluate(
     samples: list[dict] = []
     per_pair = max(1, plot_pixels // max(1, len(dataset)))
     if predictions_dir is not None:
-        predictions_dir.mkdir(parents=True, exist_ok=True)
+        runfolder.make_folder(predictions_dir)
     for batch in loader:
         gt = batch["target"].to(device)
         h, w = gt.shape[-2:]

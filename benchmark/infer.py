@@ -49,6 +49,10 @@ from .multishift import (
 
 MIN_MAX_SHIFT = 8  # smallest default --max-shift (frames)
 MAX_MAX_SHIFT = 1000  # largest default --max-shift (frames kept in memory)
+#: largest side (pixels) of the network input (--res): the preview puts frame and depth side
+#: by side, 2·W wide, within the mp4v encoder's 8191 px; DepthNet's forward pass at 2048x2048
+#: takes 0.8 GB and 4 s on one CPU thread (a frame's --shifts 4 pairs: about 3 GB)
+MAX_RES = 2048
 FIRST_FRAME = "frame 0 has no earlier frame: no depth for it"
 CSV_COLUMNS = ("frame", "status", "shifts", "displacements_m", "d_opt_m", "mean_depth_m")
 
@@ -157,8 +161,11 @@ def default_max_shift(positions: np.ndarray, d0: float) -> int:
 def _geometry(o: InferOptions, info: dict, source: video.FrameSource) -> tuple:
     """Network input size, crop box, focal lengths and the field-of-view warning (or None)."""
     w, h = o.res or (info["width"], info["height"])
-    if w % 64 or h % 64 or w < 64 or h < 64:
-        raise ValueError(f"--res: the network needs multiples of 64 pixels, got {w}x{h}")
+    if w % 64 or h % 64 or not (64 <= w <= MAX_RES and 64 <= h <= MAX_RES):
+        raise ValueError(
+            f"--res: the network needs multiples of 64 pixels from 64 to {MAX_RES}, got {w}x{h}"
+            + ("" if o.res else f" (the training size of --ckpt {o.ckpt}; give --res)")
+        )
     f_train = video.focal_px(w, info["fov_deg"])
     f_video = video.focal_px(source.width, o.fov or info["fov_deg"], o.focal)
     crop = video.crop_box(source.width, source.height, w, h, f_video, f_train)
@@ -171,6 +178,19 @@ def _geometry(o: InferOptions, info: dict, source: video.FrameSource) -> tuple:
             f"are biased by a factor {crop.factor:.3g}"
         )
     return (w, h), crop, focals, warning
+
+
+def _check_fixed_shift(o: InferOptions, frames: int) -> None:
+    """--fixed-shift within what the input allows: below its ``frames`` frames and at most
+    --max-shift (ValueError naming the flag). Frames t < shift still use shift t (all there is)."""
+    shift = o.fixed_shift
+    if shift is not None and shift >= frames:
+        raise ValueError(
+            f"--fixed-shift: {shift} frames, but '{o.input}' has {frames} frames "
+            f"(at most {frames - 1})"
+        )
+    if shift is not None and o.max_shift is not None and shift > o.max_shift:
+        raise ValueError(f"--fixed-shift: {shift} is above --max-shift {o.max_shift}")
 
 
 def prepare(o: InferOptions) -> Job:
@@ -187,6 +207,7 @@ def prepare(o: InferOptions) -> Job:
         raise ValueError(f"--ckpt: no such file '{o.ckpt}'")
     model, scale, info = depth_network(o.ckpt, "--ckpt", camera)
     source = video.FrameSource(o.input)
+    _check_fixed_shift(o, source.count)
     positions, fps = _motion(o, source)
     size, crop, focals, warning = _geometry(o, info, source)
     max_shift = o.max_shift or max(default_max_shift(positions, scale.d0), o.fixed_shift or 1)

@@ -35,7 +35,7 @@ from tqdm import tqdm
 
 from stillbox_gen.dataset import Dataset, Scene
 
-from . import metrics
+from . import metrics, runfolder
 from .checkpoint import depth_network
 from .config import MULTISHIFT_MAX_SHIFT
 from .infer import frame_depth, network_outputs
@@ -218,7 +218,7 @@ def markdown(rows: list[dict], info: dict) -> str:
 def write_results(out: Path, rows: list[dict], info: dict) -> str:
     """results.csv, results.json, results.md and the MRE-vs-time figure into ``out``; returns
     the Markdown."""
-    out.mkdir(parents=True, exist_ok=True)
+    runfolder.make_folder(out)
     with open(out / RESULTS_CSV, "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=list(rows[0]))
         writer.writeheader()

@@ -197,10 +197,14 @@ def compare_figure(runs: list[Path], path: Path) -> bool:
     for run in runs:
         px = runfolder.read_pixels(run)
         if px is not None:
+            missing = {"foe_distance", "abs_err"} - set(px)
+            if missing:
+                raise ValueError(f"{run / runfolder.PIXELS_NPZ}: no '{min(missing)}' array")
             model = runfolder.read_summary(run)["model"]
             label = model if model not in curves else f"{model} ({run.name})"
             curves[label] = (px["foe_distance"], px["abs_err"])
     if curves:
+        runfolder.make_folder(path.parent)
         plots.error_vs_foe_distance(curves, path)
     return bool(curves)
 
@@ -223,7 +227,6 @@ def write_comparison(runs: list[Path], out: Path) -> str:
     """OUT.md, OUT.csv and OUT-error_vs_foe_distance.png of several runs; returns the table."""
     md, csv_text = compare_runs(runs)
     figure = runfolder.comparison_paths(out)["figure"]
-    figure.parent.mkdir(parents=True, exist_ok=True)
     text = md
     if compare_figure(runs, figure):
         text += f"\n\nError vs distance to the focus of expansion, every method: `{figure.name}`"

@@ -44,6 +44,8 @@ import torch
 
 from stillbox_gen.formats import atomic_write_text
 
+from .checkpoint import first_line
+
 CONFIG_JSON = "config.json"
 ENVIRONMENT_JSON = "environment.json"
 STEPS_CSV = "steps.csv"
@@ -105,16 +107,38 @@ def has_summary(run: Path) -> bool:
 
 
 def read_summary(run: Path) -> dict:
-    return json.loads((Path(run) / SUMMARY_JSON).read_text())
+    """summary.json: a dict with a ``model`` name and a ``metrics`` dict; anything else (not
+    JSON, not UTF-8, another shape) is a one-line ValueError naming the file."""
+    path = Path(run) / SUMMARY_JSON
+    try:
+        summary = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise ValueError(f"{path}: not a readable {SUMMARY_JSON} ({first_line(e)})") from None
+    if not (
+        isinstance(summary, dict)
+        and isinstance(summary.get("model"), str)
+        and isinstance(summary.get("metrics"), dict)
+    ):
+        raise ValueError(f"{path}: not a stillbox-bench {SUMMARY_JSON} (no 'model' and 'metrics')")
+    return summary
 
 
 def read_pixels(run: Path) -> dict[str, np.ndarray] | None:
-    """The arrays of pixels.npz, or None when the run has none."""
+    """The numeric arrays of pixels.npz, or None when the run has none. Read without pickle (an
+    array of objects is refused, never unpickled); a file that is not such an archive is a
+    one-line ValueError naming it."""
     path = Path(run) / PIXELS_NPZ
     if not path.is_file():
         return None
-    with np.load(path) as px:
-        return {k: px[k] for k in px.files}
+    try:
+        with np.load(path, allow_pickle=False) as px:
+            arrays = {k: px[k] for k in px.files}
+    except Exception as e:  # noqa: BLE001 - any reader failure (zip, header, pickle) is the file's
+        raise ValueError(f"{path}: not a readable {PIXELS_NPZ} ({first_line(e)})") from None
+    odd = [k for k, a in arrays.items() if a.dtype.kind not in "biuf"]
+    if odd:
+        raise ValueError(f"{path}: array '{odd[0]}' is not numeric ({arrays[odd[0]].dtype})")
+    return arrays
 
 
 def read_rows(run: Path, name: str) -> list[dict]:
@@ -126,7 +150,18 @@ def read_rows(run: Path, name: str) -> list[dict]:
         return list(csv.DictReader(f))
 
 
-# ---------------------------------------------------------------- atomic writes
+# ---------------------------------------------------------------- folders and atomic writes
+
+
+def make_folder(folder: Path, flag: str = "--out") -> Path:
+    """``mkdir -p folder``; a folder that cannot be made (e.g. under /proc, read-only, a file
+    in the way) is a one-line ValueError naming ``flag`` and the folder."""
+    folder = Path(folder)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise ValueError(f"{flag}: cannot create '{folder}' ({e.strerror or e})") from None
+    return folder
 
 
 def atomic_write_binary(
@@ -136,7 +171,7 @@ def atomic_write_binary(
     (then fsync the folder when ``sync_folder``): a kill or power cut leaves the old or the new
     file, never half of one. The binary counterpart of ``formats.atomic_write_text``."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    make_folder(path.parent)
     tmp = path.with_name(f".{path.name}{TMP_SUFFIX}")
     try:
         with open(tmp, "wb") as f:
@@ -206,7 +241,7 @@ def start_logs(run: Path, resume: bool, last_step: int) -> list[Path]:
     metrics.csv, tb/ and best.pt afresh. Either way delete checkpoint temporaries left by a kill.
     """
     run = Path(run)
-    (run / CHECKPOINTS_DIR).mkdir(parents=True, exist_ok=True)
+    make_folder(make_folder(run) / CHECKPOINTS_DIR)
     stale = remove_stale_temps(run / CHECKPOINTS_DIR)
     if resume:
         for name in (STEPS_CSV, METRICS_CSV):
@@ -274,8 +309,7 @@ def write_report(
     pixels: dict[str, np.ndarray],
 ) -> None:
     """per_sample.csv, pixels.npz (when there are pixels), summary.json and summary.md."""
-    run = Path(run)
-    run.mkdir(parents=True, exist_ok=True)
+    run = make_folder(run)
     atomic_write_text(run / PER_SAMPLE_CSV, _csv_text(per_sample))
     if pixels:
         atomic_write_binary(run / PIXELS_NPZ, lambda f: np.savez_compressed(f, **pixels))
@@ -286,6 +320,6 @@ def write_report(
 def write_comparison(out: Path, markdown: str, csv_text: str) -> None:
     """``OUT.md`` and ``OUT.csv`` of a comparison (:func:`comparison_paths`)."""
     paths = comparison_paths(out)
-    paths["md"].parent.mkdir(parents=True, exist_ok=True)
+    make_folder(paths["md"].parent)
     atomic_write_text(paths["md"], markdown)
     atomic_write_text(paths["csv"], csv_text)

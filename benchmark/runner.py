@@ -25,19 +25,28 @@ from .checkpoint import load_checkpoint, load_weights
 from .config import EVAL_BATCH_SIZE, TrainConfig, default
 from .data import FrameStore, PairDataset, Scene, load_scenes, read_depth
 from .evaluate import EvalResult, Method, evaluate
-from .train import Trainer, environment, resolve_device
+from .train import Trainer, environment, resolve_device, resumed_settings
 
 MEDIAN_FRAMES = 2000  # at most this many training frames (evenly spread) for the constant
 ORACLE_FLOW_NOISE_PX = 0.05  # oracle-flow is also scored with this much flow noise (sensitivity)
 
 
-def eval_split(data: Path, split: str, shift: int, progress: bool) -> tuple[str, list, PairDataset]:
-    """(split actually used, its scenes, eval-mode PairDataset); test falls back to val."""
+def eval_split(
+    data: Path, split: str, shift: int, progress: bool, shift_source: str = "--shift"
+) -> tuple[str, list, PairDataset]:
+    """(split actually used, its scenes, eval-mode PairDataset); test falls back to val. A
+    ``shift`` (frames) not below the scenes' frame count is a ValueError naming
+    ``shift_source``, raised before any frame is read."""
     scenes = load_scenes(data, split)
     if not scenes and split == "test":
         split, scenes = "val", load_scenes(data, "val")
     if not scenes:
         raise ValueError(f"--data: '{data}' has no scenes in split '{split}'")
+    frames = min(s.frames for s in scenes)
+    if shift >= frames:
+        raise ValueError(
+            f"{shift_source} {shift} is not below the {frames} frames of the scenes of '{data}'"
+        )
     return split, scenes, PairDataset(FrameStore(scenes, progress=progress), "eval", shift)
 
 
@@ -75,10 +84,12 @@ def score_checkpoint(
     save_predictions: bool,
     progress: bool = True,
     extra: dict | None = None,
+    split_data: tuple[str, list, PairDataset] | None = None,
 ) -> dict:
     """Evaluate a checkpoint on a split and write summary.json/.md, per_sample.csv, plots/
     (``extra`` is added to the summary). The checkpoint, device and data are checked before
-    ``out`` is created."""
+    ``out`` is created. ``split_data``: :func:`eval_split`'s answer for this split at the
+    checkpoint's shift, when already read."""
     if batch_size < 1:
         raise ValueError(f"--batch-size: must be at least 1, got {batch_size}")
     dev = resolve_device(device)
@@ -88,12 +99,15 @@ def score_checkpoint(
     load_weights(model, ck, f"--ckpt {ckpt}", name)
     model.to(dev)
     shift = ck.get("shift", NOMINAL_SHIFT)
-    split, scenes, dataset = eval_split(data, split, shift, progress)
+    if split_data is None or split_data[2].shift != shift:
+        split_data = eval_split(data, split, shift, progress, f"--ckpt {ckpt}: its 'shift'")
+    split, scenes, dataset = split_data
     depth_range = ck.get("depth_range", [0.0, MAX_DEPTH])
     clamp = registry.output_clamp(depth_range)
     method = Method(
         registry.MODELS[name].output, model, ck["nominal_displacement"], depth_range=clamp
     )
+    runfolder.make_folder(out)  # after every check, before the evaluation's minutes
     t0 = time.perf_counter()
     predictions = runfolder.predictions_dir(out) if save_predictions else None
     result = evaluate(method, dataset, dev, batch_size, predictions_dir=predictions)
@@ -137,7 +151,7 @@ def score_baseline(
             f"every pixel of {frames} frames spread evenly over the split"
         )
     split, scenes, dataset = eval_split(data, split, shift, progress)
-    out.mkdir(parents=True, exist_ok=True)  # after every check: a mistake leaves nothing behind
+    runfolder.make_folder(out)  # after every check: a mistake leaves nothing behind
     config = {"model": name, "data": str(data), "split": split, "shift": shift, "device": device}
     runfolder.write_config(out, config)
     runfolder.write_environment(out, environment(dev))
@@ -174,7 +188,10 @@ def train_and_score(cfg: TrainConfig) -> dict | None:
     under DDP). ``cfg.out`` is created by Trainer.setup once every input has been checked."""
     out = Path(cfg.out)
     trainer = Trainer(cfg)
-    trainer.setup()
+    scored = []  # the test split, read (every frame) before the run folder is made
+    trainer.setup(
+        check=lambda: scored.append(eval_split(Path(cfg.data), "test", cfg.shift, cfg.progress))
+    )
     t0 = time.perf_counter()
     trainer.fit()
     train_seconds = time.perf_counter() - t0
@@ -190,13 +207,18 @@ def train_and_score(cfg: TrainConfig) -> dict | None:
         cfg.save_predictions,
         progress=cfg.progress,
         extra={"training_seconds": round(train_seconds, 1)},
+        split_data=scored[0],
     )
 
 
 def train_config(model: str, data: Path, out: Path, **overrides) -> TrainConfig:
-    """The model's registry recipe, then ``overrides`` (None values ignored)."""
+    """The model's registry recipe (resuming: the settings ``out``'s last checkpoint was trained
+    with, train.RESUMED_FIELDS), then ``overrides`` (None values ignored)."""
     recipe = dataclasses.asdict(registry.MODELS[model].recipe)
     cfg = TrainConfig(model=model, data=str(data), out=str(out), **recipe)
+    if overrides.get("resume"):
+        last = load_checkpoint(runfolder.checkpoint_path(out, "last"), "--resume")
+        cfg = dataclasses.replace(cfg, **resumed_settings(last))
     return dataclasses.replace(cfg, **{k: v for k, v in overrides.items() if v is not None})
 
 

@@ -21,6 +21,7 @@ import platform
 import re
 import signal
 import time
+from collections.abc import Callable
 from dataclasses import asdict
 from pathlib import Path
 
@@ -180,9 +181,64 @@ class TrainStep:
 
 
 RESUME_KEYS = ("optimizer", "scheduler", "state")
+#: TrainConfig fields a resumed run keeps from its checkpoint's config, with their flags (None:
+#: set by the recipe only). A change would not be applied (optimiser, scheduler and sampling
+#: position come from the checkpoint) or would make the run differ from the one config.json
+#: describes, so it is refused; --max-steps, --device, --threads and the logging and speed
+#: options may change (they are applied and recorded).
+RESUMED_FIELDS = {
+    "epochs": "--epochs",
+    "batch_size": "--batch-size",
+    "lr": "--lr",
+    "shift": "--shift",
+    "depth_range": "--clamp",
+    "seed": "--seed",
+    "pretrained": "--pretrained",
+    **dict.fromkeys(("optimizer", "momentum", "dampening", "beta2", "weight_decay"), None),
+    **dict.fromkeys(("milestones", "gamma", "loss_weights", "loss_scale"), None),
+}
+
+
+def _plain(value):
+    """A config value comparable across checkpoints (lists and tuples alike)."""
+    return tuple(value) if isinstance(value, (list, tuple)) else value
+
+
+def resumed_settings(ck: dict) -> dict:
+    """The RESUMED_FIELDS of a checkpoint's recorded config (those it has)."""
+    config = ck.get("config") if isinstance(ck.get("config"), dict) else {}
+    return {k: _plain(config[k]) for k in RESUMED_FIELDS if k in config}
+
+
+def check_resumed_settings(cfg: TrainConfig, ck: dict, where: str) -> None:
+    """ValueError naming the flag when ``cfg`` changes a setting the checkpoint ``ck`` (file
+    ``where``) was trained with (RESUMED_FIELDS)."""
+    for field, then in resumed_settings(ck).items():
+        now = _plain(getattr(cfg, field))
+        if now == then:
+            continue
+        flag = RESUMED_FIELDS[field]
+        if flag is None:
+            raise ValueError(
+                f"--resume {where}: trained with {field} {then}, this version's recipe has {now}"
+            )
+        shown = [
+            ",".join(f"{v:g}" for v in x) if field == "depth_range" else x for x in (then, now)
+        ]
+        raise ValueError(
+            f"{flag}: the run was trained with {shown[0]}, not {shown[1]}; a resumed run keeps "
+            f"its settings (leave {flag} out, or start a new --out)"
+        )
+
+
 #: running sums of the open stage (steps since the last validation), kept in the checkpoint so
 #: a resumed stage logs the same train_loss and samples/s as an uninterrupted one
 STAGE_KEYS = ("stage_loss_sum", "stage_steps", "stage_samples", "stage_wait", "stage_seconds")
+
+
+class NonFiniteLoss(ValueError):
+    """Training stopped on a NaN or infinite loss or weights (one line: step, epoch, what is
+    kept)."""
 
 
 class Trainer:
@@ -206,9 +262,10 @@ class Trainer:
         if self.is_main_process:
             tqdm.write(msg)
 
-    def setup(self) -> None:
-        """Check every input (checkpoints, data), then create the run folder: an error leaves
-        nothing behind."""
+    def setup(self, check: Callable[[], None] | None = None) -> None:
+        """Check every input (checkpoints, data, then ``check()`` in the main process, e.g. the
+        test split scored after training), then create the run folder: an error leaves nothing
+        behind."""
         cfg = self.cfg
         torch.manual_seed(cfg.seed)
         spec = registry.MODELS[cfg.model]
@@ -222,10 +279,12 @@ class Trainer:
             )
         if resume is not None and not all(k in resume for k in RESUME_KEYS):
             raise ValueError(f"--resume {last}: holds no training state (not a 'last.pt')")
+        if resume is not None:
+            check_resumed_settings(cfg, resume, last)
         self.output = spec.output  # "depth" or "flow"
         self.model = spec.build().to(self.device)
         self.nominal_displacement = None
-        if cfg.pretrained:
+        if cfg.pretrained and resume is None:  # resuming: the checkpoint's weights
             where = f"--pretrained {cfg.pretrained}"
             load_weights(
                 self.model, load_checkpoint(cfg.pretrained, "--pretrained"), where, cfg.model
@@ -277,6 +336,7 @@ class Trainer:
         self.train_store = FrameStore(train_scenes, cfg.cache, show)
         self.val_store = FrameStore(val_scenes, cfg.cache, show)
         self.cache_seconds = time.perf_counter() - t0
+        self._check_frame_size(cfg.data)
         frames = min(s.frames for s in val_scenes)
         if not 1 <= cfg.shift < frames:
             raise ValueError(
@@ -310,10 +370,24 @@ class Trainer:
                 f"--batch-size {cfg.batch_size}: larger than the "
                 f"{len(self.train_set)} training samples"
             )
+        if check is not None and self.is_main_process:
+            check()
         if self.is_main_process:
             self._start_run_folder()
         if resume is not None:
             self.log(f"resumed from {last} at step {self.state['global_step']}")
+
+    def _check_frame_size(self, data: str) -> None:
+        """ValueError naming --data unless the frames (train and val) fit the network: height
+        and width multiples of its ``min_multiple`` pixels (64 for six stride-2 stages)."""
+        multiple = getattr(self.model, "min_multiple", 1)
+        for store in (self.train_store, self.val_store):
+            if store.height % multiple or store.width % multiple:
+                raise ValueError(
+                    f"--data {data}: frames of {store.width}x{store.height} px; "
+                    f"'{self.cfg.model}' needs sizes that are multiples of {multiple} px "
+                    f"(e.g. stillbox-gen --res {multiple})"
+                )
 
     def _load_training_state(self, ck: dict, path: Path) -> None:
         """Weights, optimiser, scheduler and counters (with the open stage's running sums)."""
@@ -347,7 +421,11 @@ class Trainer:
     def checkpoint(self, name: str) -> None:
         """Save ``checkpoints/<name>.pt`` (main process only): weights, optimiser, scheduler,
         counters, model name, nominal displacement (metres), shift, depth range (metres), the
-        training camera (frame size in pixels, horizontal field of view in degrees) and config."""
+        training camera (frame size in pixels, horizontal field of view in degrees) and config.
+        Weights that are no longer finite are never saved (NonFiniteLoss, in every process)."""
+        state = self.model.state_dict().values()
+        if not all(torch.isfinite(t).all() for t in state if t.is_floating_point()):
+            self._stop("the weights are not finite", self.state["global_step"])
         if not self.is_main_process:
             return
         runfolder.save_checkpoint(
@@ -364,6 +442,31 @@ class Trainer:
                 "camera": self.camera,
                 "config": asdict(self.cfg),
             },
+        )
+
+    def _finite_everywhere(self, loss: float) -> bool:
+        """True when the step's loss is finite in every process (one all-reduce under DDP, so
+        all processes stop together)."""
+        finite = math.isfinite(loss)
+        if self.world > 1:
+            flag = torch.tensor([0.0 if finite else 1.0], device=self.device)
+            torch.distributed.all_reduce(flag, op=torch.distributed.ReduceOp.MAX)
+            finite = flag.item() == 0.0
+        return finite
+
+    def _stop(self, what: str, step: int) -> None:
+        """Raise NonFiniteLoss: ``what`` (a NaN or infinite loss or weights) at optimiser step
+        ``step``. Nothing is saved after it, so checkpoints/last.pt stays the last one with
+        finite weights; TensorBoard is closed first."""
+        last = runfolder.checkpoint_path(self.run, "last")
+        if self.is_main_process:
+            self.tb.close()
+        if self.world > 1:
+            torch.distributed.destroy_process_group()
+        kept = f"{last} is kept" if last.exists() else "no checkpoint was saved"
+        raise NonFiniteLoss(
+            f"training stopped: {what} at step {step} (epoch {self.state['epoch']}); try a "
+            f"smaller --lr (this run: {self.cfg.lr:g}); {kept}"
         )
 
     def total_steps(self) -> int:
@@ -458,6 +561,9 @@ class Trainer:
             for batch in self.loader:
                 st["stage_wait"] += time.perf_counter() - t_data
                 value = self.train_step(batch).item()
+                if not self._finite_everywhere(value):
+                    bar.close()
+                    self._stop(f"the loss is {value}", st["global_step"] + 1)
                 st["global_step"] += 1
                 st["step_in_epoch"] += 1
                 st["stage_loss_sum"] += value

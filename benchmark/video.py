@@ -87,17 +87,22 @@ class FrameSource:
         return img[..., ::-1]
 
     def __iter__(self) -> Iterator[np.ndarray]:
-        """At most ``count`` frames, (H, W, 3) uint8 RGB, in order."""
+        """The ``count`` frames, (H, W, 3) uint8 RGB, in order. A video that decodes fewer
+        frames than its container lists (garbled or cut) is a ValueError naming --input and
+        both counts, when the first frame that fails is reached."""
         if self.files is not None:
             for p in self.files:
                 yield np.ascontiguousarray(self._read_image(p))
             return
         cap = cv2.VideoCapture(str(self.path))
         try:
-            for _ in range(self.count):
+            for k in range(self.count):
                 ok, frame = cap.read()
                 if not ok:
-                    return
+                    raise ValueError(
+                        f"--input: '{self.path}' decodes {k} of the {self.count} frames its "
+                        f"container lists (frame {k} fails): garbled or cut; re-encode it"
+                    )
                 yield np.ascontiguousarray(frame[..., ::-1])
         finally:
             cap.release()

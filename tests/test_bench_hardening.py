@@ -6,8 +6,10 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import json
 import math
 import os
+import shutil
 import signal
 import subprocess
 from pathlib import Path
@@ -15,12 +17,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from conftest import CliResult
+from conftest import TINY_SHARES, CliResult, run_cli
 from test_bench import bench
 
 from benchmark import registry, runfolder, train
 from benchmark.config import TrainConfig
+from benchmark.data import load_scenes
 from benchmark.runner import train_config
+from stillbox_gen.manifest import split_of
 
 
 def assert_bench_error(proc: CliResult | subprocess.CompletedProcess, *words: str) -> str:
@@ -136,6 +140,8 @@ BAD_FLAGS = [
     (["eval", "--ckpt", "CKPT", "--batch-size", "0"], ["--batch-size", "0"]),
     (["run", "depthnet-tiny", "--log-every", "0"], ["--log-every"]),
     (["run", "depthnet-tiny", "--batch-size", "1000"], ["--batch-size", "1000"]),
+    (["run", "depthnet-tiny", "--seed", "-1"], ["--seed", "-1"]),
+    (["compare", "--models", "depthnet-tiny", "--seed", str(2**64)], ["--seed"]),
 ]
 
 
@@ -367,3 +373,231 @@ def test_rerun_after_a_kill_before_the_first_checkpoint_starts_logs_afresh(
     assert [int(r["step"]) for r in _rows(out / "steps.csv")] == [1, 2]
     assert [int(r["step"]) for r in _rows(out / "metrics.csv")] == [2]
     assert not (out / "tb" / "events.out.tfevents.killed").exists()
+
+
+# ------------------------------------------------------------------ every check before --out
+
+
+def _copy_with_broken_test_frame(data: Path, to: Path) -> Path:
+    """A copy of ``data`` whose first test scene has one frame that does not decode."""
+    shutil.copytree(data, to)
+    victim = load_scenes(to, "test")[0].rgb[5]
+    victim.write_bytes(b"not a png")
+    return victim
+
+
+@pytest.fixture(scope="module")
+def dataset_32px(tmp_path_factory) -> Path:
+    """tiny_dataset's scenes at 32 px: frames DepthNet (multiples of 64) cannot read."""
+    seed = next(
+        s
+        for s in range(100)
+        if {split_of(s, k, TINY_SHARES) for k in range(6)} == {"train", "val", "test"}
+    )
+    out = tmp_path_factory.mktemp("bench32") / "tiny32"
+    split = ",".join(map(str, TINY_SHARES))
+    run_cli("--res", 32, "--scenes", 6, "--seed", seed, "--split", split, "--out", out, "--quiet")
+    return out
+
+
+@pytest.mark.render
+def test_run_on_32px_frames_is_refused_before_writing(dataset_32px, tmp_path):
+    out = tmp_path / "out"
+    proc = bench("run", "depthnet-tiny", "--data", dataset_32px, "--out", out, "--quiet",
+                 check=False)  # fmt: skip
+    assert_bench_error(proc, "--data", str(dataset_32px), "32x32", "multiples of 64")
+    assert not out.exists()
+
+
+@pytest.mark.render
+def test_run_with_a_broken_test_scene_is_refused_before_training(tiny_dataset, tmp_path):
+    """The test split is scored only after training, but read (every frame) before --out is
+    made: a broken test frame costs no training and leaves no checkpoint."""
+    data = tmp_path / "data"
+    victim = _copy_with_broken_test_frame(tiny_dataset, data)
+    out = tmp_path / "out"
+    proc = bench(
+        "run", "depthnet-tiny", "--data", data, "--batch-size", 4, "--max-steps", 1, "--quiet",
+        "--out", out, check=False,
+    )  # fmt: skip
+    assert_bench_error(proc, victim.name)
+    assert not out.exists()
+
+
+@pytest.mark.render
+@pytest.mark.parametrize("command", ["run", "eval", "report"])
+def test_out_that_cannot_be_made_is_one_line(tiny_dataset, tmp_path, command):
+    out = Path("/proc/stillbox-bench-test")
+    ckpt = write_checkpoint(tmp_path / "c.pt")
+    summary = {"model": "m", "metrics": {"mae": 1.0}}
+    runfolder.write_report(tmp_path / "r", summary, "", [], {})
+    args = {
+        "run": ["run", "depthnet-tiny", "--data", tiny_dataset, "--batch-size", 4, "--quiet"],
+        "eval": ["eval", "--ckpt", ckpt, "--data", tiny_dataset],
+        "report": ["report", tmp_path / "r"],
+    }[command]
+    target = out / "cmp" if command == "report" else out
+    proc = bench(*args, "--out", target, check=False)
+    if command == "eval":  # after its frame-caching progress bar, which \r clears
+        proc = dataclasses.replace(proc, stderr=proc.stderr.rsplit("\r", 1)[-1])
+    assert_bench_error(proc, "--out", f"cannot create '{out}")
+
+
+# ------------------------------------------------------------------ resume keeps its settings
+
+
+@pytest.mark.render
+def test_resume_refuses_changed_settings_and_keeps_its_own(tiny_dataset, tmp_path):
+    """A resumed run trains with its checkpoint's optimiser, schedule and sampling position, so a
+    new --batch-size, --epochs, --lr, --clamp or --seed is refused (config.json and last.pt
+    untouched); options left out are the run's own, and --max-steps may grow."""
+    out = tmp_path / "run"
+    common = ["run", "depthnet-tiny", "--data", tiny_dataset, "--quiet", "--out", out]
+    bench(*common, "--batch-size", 4, "--epochs", 2, "--seed", 5, "--max-steps", 2)
+    config = (out / "config.json").read_bytes()
+    last = runfolder.checkpoint_path(out, "last").read_bytes()
+    changes = [("--batch-size", "8", "4"), ("--epochs", "3", "2"), ("--lr", "0.5", "0.01")]
+    changes += [("--clamp", "10,60", "0,100"), ("--seed", "0", "5")]
+    for flag, value, then in changes:
+        proc = bench(*common, "--resume", flag, value, check=False)
+        line = assert_bench_error(proc, flag, f"trained with {then}, not {value}")
+        assert "resumed run keeps its settings" in line
+    assert (out / "config.json").read_bytes() == config
+    assert runfolder.checkpoint_path(out, "last").read_bytes() == last
+    bench(*common, "--resume", "--max-steps", 3, "--batch-size", 4)
+    recorded = json.loads((out / "config.json").read_text())
+    assert (recorded["batch_size"], recorded["epochs"], recorded["seed"]) == (4, 2, 5)
+    assert (recorded["max_steps"], recorded["resume"]) == (3, True)
+    steps = torch.load(runfolder.checkpoint_path(out, "last"), weights_only=True)["state"]
+    assert steps["global_step"] == 3
+
+
+# ------------------------------------------------------------------ non-finite loss
+
+
+@pytest.mark.render
+def test_huge_lr_stops_on_the_first_non_finite_value(tiny_dataset, tmp_path):
+    out = tmp_path / "run"
+    proc = bench(
+        "run", "depthnet-tiny", "--data", tiny_dataset, "--batch-size", 4, "--lr", "1e300",
+        "--quiet", "--out", out, check=False,
+    )  # fmt: skip
+    line = assert_bench_error(proc, "training stopped", "at step ", "(epoch 0)", "--lr")
+    assert "no checkpoint was saved" in line
+    assert not runfolder.checkpoint_path(out, "last").exists()
+    assert not (out / "summary.json").exists()
+
+
+@pytest.mark.render
+def test_nan_loss_keeps_the_last_good_checkpoint(tiny_dataset, tmp_path, monkeypatch):
+    """The loss turns NaN at step 3 (checkpoints every step): training stops there in one line
+    naming step 3, and last.pt is step 2's, with finite weights."""
+    loss, calls = train.multiscale_loss, []
+
+    def nan_at_step_3(*args):
+        calls.append(1)
+        return loss(*args) * (math.nan if len(calls) == 3 else 1.0)
+
+    monkeypatch.setattr(train, "multiscale_loss", nan_at_step_3)
+    cfg = dataclasses.replace(_config(tiny_dataset, tmp_path / "run"), ckpt_every=1)
+    with pytest.raises(train.NonFiniteLoss, match=r"loss is nan at step 3 \(epoch 0\)"):
+        _train(cfg)
+    ck = torch.load(runfolder.checkpoint_path(cfg.out, "last"), weights_only=True)
+    assert ck["state"]["global_step"] == 2
+    assert all(torch.isfinite(v).all() for v in ck["model"].values() if v.is_floating_point())
+    assert [int(r["step"]) for r in _rows(Path(cfg.out) / "steps.csv")] == [1, 2]
+
+
+# ------------------------------------------------------------------ checkpoint metadata
+
+
+BAD_METADATA = [
+    ({"nominal_displacement": "0.3"}, "'nominal_displacement' is '0.3'"),
+    ({"nominal_displacement": math.nan}, "'nominal_displacement' is nan"),
+    ({"nominal_displacement": -1.0}, "'nominal_displacement' is -1.0"),
+    ({"nominal_displacement": None}, "'nominal_displacement' is None"),
+    ({"depth_range": [60.0, 10.0]}, "'depth_range' is [60.0, 10.0]"),
+    ({"depth_range": [0.0, math.inf]}, "'depth_range' is [0.0, inf]"),
+    ({"shift": 0}, "'shift' is 0"),
+    ({"shift": 2.5}, "'shift' is 2.5"),
+    ({"camera": {"width": 64, "height": 64, "fov_deg": math.nan}}, "'camera.fov_deg' is nan"),
+    ({"camera": {"width": "64", "height": 64, "fov_deg": 90.0}}, "'camera.width' is '64'"),
+    ({"camera": [64, 64]}, "'camera' is [64, 64]"),
+]
+
+
+@pytest.mark.render
+@pytest.mark.parametrize(("change", "words"), BAD_METADATA, ids=[w for _, w in BAD_METADATA])
+def test_eval_refuses_unusable_checkpoint_metadata(tiny_dataset, tmp_path, change, words):
+    ckpt = write_checkpoint(tmp_path / "c.pt", **change)
+    out = tmp_path / "out"
+    proc = bench("eval", "--ckpt", ckpt, "--data", tiny_dataset, "--out", out, check=False)
+    assert_bench_error(proc, f"--ckpt {ckpt}", words)
+    assert not out.exists()
+
+
+@pytest.mark.render
+def test_eval_refuses_a_shift_the_scenes_cannot_give(tiny_dataset, tmp_path):
+    ckpt = write_checkpoint(tmp_path / "c.pt", shift=10)
+    out = tmp_path / "out"
+    proc = bench("eval", "--ckpt", ckpt, "--data", tiny_dataset, "--out", out, check=False)
+    assert_bench_error(proc, f"--ckpt {ckpt}", "'shift' 10", "10 frames")
+    assert not out.exists()
+
+
+@pytest.mark.render
+@pytest.mark.parametrize("command", ["infer", "eval-multishift", "pretrained", "resume"])
+def test_every_reader_checks_checkpoint_metadata(tiny_dataset, tmp_path, command):
+    """The same check (checkpoint.check_metadata) and line for every command reading one."""
+    out = tmp_path / "out"
+    ckpt = tmp_path / "c.pt"
+    if command == "resume":
+        ckpt = runfolder.checkpoint_path(out, "last")
+    write_checkpoint(ckpt, nominal_displacement=math.nan)
+    run = ["run", "depthnet-tiny", "--data", tiny_dataset, "--quiet", "--out", out]
+    args = {
+        "infer": ["infer", "--ckpt", ckpt, "--input", load_scenes(tiny_dataset, "test")[0].rgb[0]
+                  .parent, "--speed", 1, "--fps", 10, "--quiet", "--out", out],
+        "eval-multishift": ["eval-multishift", "--ckpt", ckpt, "--data", tiny_dataset,
+                            "--max-shift", 3, "--quiet", "--out", out],
+        "pretrained": [*run, "--pretrained", ckpt],
+        "resume": [*run, "--resume"],
+    }[command]  # fmt: skip
+    proc = bench(*args, check=False)
+    flag = {"pretrained": "--pretrained", "resume": "--resume"}.get(command, "--ckpt")
+    assert_bench_error(proc, f"{flag} {ckpt}", "'nominal_displacement' is nan")
+    assert command == "resume" or not out.exists()
+
+
+# ------------------------------------------------------------------ report
+
+
+def test_report_of_an_unreadable_summary_or_pixels_is_one_line(tmp_path):
+    """A summary.json that is not JSON (or not a summary) and a pixels.npz holding an object
+    array (never unpickled) are named in one line."""
+    summary = {"model": "m", "metrics": {"mae": 1.0}}
+    pixels = {"foe_distance": np.ones(3), "abs_err": np.ones(3)}
+    good, bad = tmp_path / "good", tmp_path / "bad"
+    runfolder.write_report(good, summary, "", [], pixels)
+    runfolder.write_report(bad, summary, "", [], pixels)
+    out = tmp_path / "cmp"
+    assert bench("report", good, "--out", out).returncode == 0
+    cases = [
+        ("summary.json", b'{"model": "m", "metr'),
+        ("summary.json", b"\xff\xfe not utf-8"),
+        ("summary.json", b'["model", "metrics"]'),
+        ("pixels.npz", b"not a zip"),
+        ("pixels.npz", "objects"),
+    ]
+    marker = tmp_path / "executed"
+    for name, content in cases:
+        runfolder.write_report(bad, summary, "", [], pixels)
+        if content == "objects":
+            np.savez(bad / name, foe_distance=np.array([CreatesFile(marker)], dtype=object),
+                     abs_err=np.ones(1))  # fmt: skip
+        else:
+            (bad / name).write_bytes(content)
+        proc = bench("report", good, bad, "--out", tmp_path / "cmp2", check=False)
+        assert_bench_error(proc, str(bad / name))
+        assert not marker.exists(), "pixels.npz was unpickled"
+        assert not list(tmp_path.glob("cmp2*")), name

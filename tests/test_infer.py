@@ -72,6 +72,19 @@ def _write_video(path: Path, frames: list[np.ndarray], fourcc: str) -> Path:
     return path
 
 
+GARBLED_AT = 3  # the first frame of the "garbled" video that does not decode
+
+
+def _garble(path: Path, frame: int) -> Path:
+    """Spoil an MP4's sample-size table entry of ``frame``: frames before it decode, the
+    container still lists every frame."""
+    data = bytearray(path.read_bytes())
+    entries = data.find(b"stsz") + 16  # tag, version+flags, sample size, count, then entries
+    data[entries + 4 * frame : entries + 4 * frame + 4] = b"\x7f\xff\xff\xff"
+    path.write_bytes(bytes(data))
+    return path
+
+
 def _write_folder(path: Path, frames: list[np.ndarray]) -> Path:
     path.mkdir()
     for k, f in enumerate(frames):
@@ -102,6 +115,7 @@ def files(tmp_path_factory) -> dict[str, Path]:
         "lossless": _write_video(d / "pan.avi", frames, "FFV1"),
         "folder": _write_folder(d / "pngs", frames),
         "narrow": _write_folder(d / "narrow", _frames(96, 80)),
+        "garbled": _garble(_write_video(d / "garbled.mp4", frames, "mp4v"), GARBLED_AT),
         "text": d / "notes.txt",
         "empty": d / "empty",
         "dir": d,
@@ -229,6 +243,11 @@ ERRORS = [
     (("--input", "{mp4}", "--speed", 3, "--shifts", 0), "--shifts"),
     (("--input", "{mp4}", "--speed", 3, "--shifts", 5), "--shifts"),
     (("--input", "{mp4}", "--speed", 3, "--res", "100x64"), "--res"),
+    (("--input", "{mp4}", "--speed", 3, "--res", "64000x64000"), "--res"),
+    (("--input", "{mp4}", "--speed", 3, "--fixed-shift", 1000), "--fixed-shift"),
+    (("--input", "{mp4}", "--speed", 3, "--fixed-shift", FRAMES), "--fixed-shift"),
+    (("--input", "{mp4}", "--speed", 3, "--fixed-shift", 5, "--max-shift", 4), "--fixed-shift"),
+    (("--input", "{garbled}", "--speed", 3), "--input"),
     (("--input", "{mp4}", "--speed", 3, "--fov", 200), "--fov"),
     (("--input", "{mp4}", "--speed", 3, "--beta-mean", 0.9), "--beta-mean"),
     (("--input", "{mp4}", "--speed", 3, "--ckpt", "{flow_ckpt}"), "--ckpt"),
@@ -264,6 +283,18 @@ def test_errors_are_one_line_before_writing(files, tmp_path, args, flag):
         assert "row 4, column 'y'" in lines[0]
     assert not out.exists()
     assert not list(tmp_path.glob(".out.partial-*"))
+
+
+def test_garbled_video_gives_both_frame_counts(files, tmp_path):
+    """A video decoding fewer frames than its container lists is refused (not cut short
+    silently): one line with both counts, nothing written."""
+    assert cv2.VideoCapture(str(files["garbled"])).get(cv2.CAP_PROP_FRAME_COUNT) == FRAMES
+    out = tmp_path / "out"
+    proc = infer(files, out, "--input", files["garbled"], "--speed", 3, ok=False)
+    assert proc.returncode == 2, proc.stderr
+    assert f"decodes {GARBLED_AT} of the {FRAMES} frames" in proc.stderr
+    assert f"(frame {GARBLED_AT} fails)" in proc.stderr
+    assert not out.exists() and not list(tmp_path.glob(".out.partial-*"))
 
 
 def test_out_must_be_new_or_empty(files, tmp_path):
