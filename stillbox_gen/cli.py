@@ -57,6 +57,19 @@ def cli() -> None:
     """
 
 
+class OutPath(click.Path):
+    """An output path (``--out``, ``merge OUT``): a Path, never the empty string (which Path
+    would read as the current folder)."""
+
+    def __init__(self) -> None:
+        super().__init__(path_type=Path)
+
+    def convert(self, value, param, ctx):
+        if isinstance(value, str) and not value.strip():
+            self.fail(f"must be a path, got {value!r}", param, ctx)
+        return super().convert(value, param, ctx)
+
+
 def parse_resolution(value: str) -> tuple[int, int]:
     text = value.lower().strip()
     try:
@@ -117,7 +130,7 @@ DEFAULT_SCENES = 100  # --scenes
 )
 @click.option(
     "--out",
-    type=click.Path(path_type=Path),
+    type=OutPath(),
     help="Output folder.  [default: data/stillbox-<W>[x<H>]]",
 )
 @click.option(
@@ -272,6 +285,10 @@ def run_options(o: dict, cfg: config.DatasetConfig) -> RunOptions:
             raise ConfigError(f"--{flag}: must be at least 1, got {o[flag]}")
     if o["threads"] < 0:
         raise ConfigError(f"--threads: must be >= 0, got {o['threads']}")
+    for flag in ("scenes", "workers", "threads"):
+        problem = config.limit_problem(flag, o[flag])
+        if problem:
+            raise ConfigError(f"--{flag}: {problem}")
     shard = parse_shard(o["shard"]) if o["shard"] else (0, 1)
     timeout = o["scene_timeout"]
     if not (timeout > 0 and math.isfinite(timeout)):
@@ -318,7 +335,7 @@ def index(dataset: Path) -> None:
 
 
 @cli.command()
-@click.argument("out", type=click.Path(path_type=Path))
+@click.argument("out", type=OutPath())
 @click.argument("sources", nargs=-1, required=True, type=click.Path(path_type=Path))
 def merge(out: Path, sources: tuple[Path, ...]) -> None:
     """Join datasets rendered by --shard I/N into separate folders (SOURCES) into OUT, indexed;
@@ -338,7 +355,7 @@ def build_config(o: dict) -> config.DatasetConfig:
     over it, validated (ConfigError naming the flag, or the preset file and key)."""
     cfg = config.load_preset(o["preset"])
     cam: dict = {}
-    if o["res"]:
+    if o["res"] is not None:
         cam["width"], cam["height"] = parse_resolution(o["res"])
     if o["fov"] is not None and o["focal"] is not None:
         raise ConfigError("--fov and --focal: give one or the other")
@@ -415,7 +432,7 @@ def validate(dataset: Path, quick: bool) -> None:
 @click.argument("dataset", type=click.Path(path_type=Path))
 @click.option(
     "--out",
-    type=click.Path(path_type=Path),
+    type=OutPath(),
     default=Path("preview.png"),
     show_default=True,
     help="PNG contact sheet to write.",
@@ -438,8 +455,11 @@ def preview(dataset: Path, out: Path, scenes: int, max_depth: float) -> None:
     with reading("DATASET"):
         ds = Dataset(dataset)
         ds.indices()  # a dataset without manifest.parquet is refused before the flags
-        if scenes < 1 or max_depth <= 0:
-            raise ConfigError("--scenes and --max-depth: must be positive")
+        if scenes < 1:
+            raise ConfigError(f"--scenes: must be at least 1, got {scenes}")
+        if not (max_depth > 0 and math.isfinite(max_depth)):
+            raise ConfigError(f"--max-depth: must be a positive finite number, got {max_depth}")
+        check_out_file(out)
         contact_sheet(ds, out, scenes, max_depth)
     click.echo(f"wrote {out}")
 
@@ -470,7 +490,7 @@ def preview(dataset: Path, out: Path, scenes: int, max_depth: float) -> None:
 )
 @click.option(
     "--out",
-    type=click.Path(path_type=Path),
+    type=OutPath(),
     help="Folder for stats.json and stats.png.  [default: DATASET]",
 )
 @click.option(
@@ -541,6 +561,9 @@ def bench(
             raise ConfigError(f"--res: expected PIXELS:SCENES pairs, got '{item}'") from None
         if px <= 0 or n <= 0:
             raise ConfigError(f"--res: pixels and scenes must be positive, got '{item}'")
+        for key, value in (("camera.width", px), ("scenes", n)):
+            if problem := config.limit_problem(key, value):
+                raise ConfigError(f"--res: {problem} ('{item}')")
         pairs.append((px, n))
     names = [n.strip() for n in configs.split(",") if n.strip()]
     b.configurations(names)  # fails early on unknown names
@@ -555,6 +578,14 @@ def bench(
     if csv_path:
         b.write_csv(rows, csv_path)
         click.echo(f"wrote {csv_path}", err=True)
+
+
+def check_out_file(out: Path, flag: str = "--out") -> None:
+    """A file to write: not a folder, in an existing folder (ConfigError naming ``flag``)."""
+    if out.is_dir():
+        raise ConfigError(f"{flag}: '{out}' is a folder; give a file name such as preview.png")
+    if not out.parent.is_dir():
+        raise ConfigError(f"{flag}: the folder of '{out}' does not exist")
 
 
 def generate_versions() -> str:
