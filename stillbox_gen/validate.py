@@ -198,7 +198,10 @@ def _scene_config_problems(s: dict, cfg: config.DatasetConfig, where: str) -> li
             f"{where}: resolution {s['resolution']} differs from dataset.json's config "
             f"({c.width}x{c.height})"
         )
-    K = np.asarray(s["K"], dtype=float)
+    try:
+        K = np.asarray(s["K"], dtype=float)
+    except ValueError:  # rows of unequal lengths
+        K = np.zeros(0)
     if K.shape != (3, 3) or not np.allclose(K, c.K(), rtol=1e-9, atol=1e-9):
         problems.append(
             f"{where}: K {s['K']} differs from the K of dataset.json's config ({c.K().tolist()})"
@@ -337,6 +340,8 @@ def validate_dataset(root: Path, check_pixels: bool = True) -> tuple[list[str], 
     problems += _info_problems(info)
     if not isinstance(info["config"], dict):
         return problems, stats
+    if problem := config.limit_problem("scenes", info["scenes"]):
+        return [*problems, f"{DATASET_JSON}: scenes {problem}"], stats
     cfg = _config_of(info)
     if cfg is not None:
         problems += _derived_problems(info, cfg)

@@ -220,6 +220,23 @@ def test_bad_shard_is_refused_before_any_write(tmp_path, value):
     assert not (tmp_path / "x").exists()
 
 
+def test_bench_resolution_beyond_the_limit_is_refused():
+    result = invoke_cli("bench", "--res", "100000:1")
+    assert_user_error(result, "--res: must be at most 8,192 pixels, got 100,000 ('100000:1')")
+
+
+def test_validate_refuses_a_scene_count_beyond_the_limit_without_looping(tmp_path):
+    """A dataset.json claiming 10^12 scenes is reported at once, not walked chunk by chunk."""
+    from stillbox_gen.dataset import dataset_info
+
+    info = dataset_info(config.DatasetConfig(), 10**12, complete=True)
+    info.update(frames=10**13, rejected_scenes=0, split_scenes={}, run={})
+    (tmp_path / "dataset.json").write_text(json.dumps(info))
+    result = invoke_cli("validate", tmp_path)
+    assert result.returncode == 1
+    assert "dataset.json: scenes must be at most 10,000,000 scenes" in result.stdout
+
+
 def test_unknown_bench_config_is_refused():
     assert_user_error(invoke_cli("bench", "--configs", "default,ultra"), "--configs: unknown ultra")
 
