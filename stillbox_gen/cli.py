@@ -57,9 +57,9 @@ def cli() -> None:
     """
 
 
-class OutPath(click.Path):
-    """An output path (``--out``, ``merge OUT``): a Path, never the empty string (which Path
-    would read as the current folder)."""
+class PathArg(click.Path):
+    """A path option or argument (``--out``, ``DATASET``, ``--textures``...): a Path, never the
+    empty string, which Path would silently read as the current folder."""
 
     def __init__(self) -> None:
         super().__init__(path_type=Path)
@@ -130,7 +130,7 @@ DEFAULT_SCENES = 100  # --scenes
 )
 @click.option(
     "--out",
-    type=OutPath(),
+    type=PathArg(),
     help="Output folder.  [default: data/stillbox-<W>[x<H>]]",
 )
 @click.option(
@@ -177,7 +177,7 @@ DEFAULT_SCENES = 100  # --scenes
 )
 @click.option(
     "--textures",
-    type=click.Path(path_type=Path),
+    type=PathArg(),
     help=f"Folder of your photos used as textures (texture ratio {_show(_MATS.texture_ratio)}).  "
     "[default: the photos bundled with bpy]",
 )
@@ -325,7 +325,7 @@ def parse_shard(value: str) -> tuple[int, int]:
 
 
 @cli.command()
-@click.argument("dataset", type=click.Path(path_type=Path))
+@click.argument("dataset", type=PathArg())
 def index(dataset: Path) -> None:
     """Index a folder filled by --shard runs: metadata.json, manifest.parquet, dataset.json."""
     from .dataset import index_dataset
@@ -335,8 +335,8 @@ def index(dataset: Path) -> None:
 
 
 @cli.command()
-@click.argument("out", type=OutPath())
-@click.argument("sources", nargs=-1, required=True, type=click.Path(path_type=Path))
+@click.argument("out", type=PathArg())
+@click.argument("sources", nargs=-1, required=True, type=PathArg())
 def merge(out: Path, sources: tuple[Path, ...]) -> None:
     """Join datasets rendered by --shard I/N into separate folders (SOURCES) into OUT, indexed;
     the files equal a single run with the same seed. OUT may be one of the SOURCES."""
@@ -401,7 +401,7 @@ def build_config(o: dict) -> config.DatasetConfig:
 
 
 @cli.command()
-@click.argument("dataset", type=click.Path(path_type=Path))
+@click.argument("dataset", type=PathArg())
 @click.option(
     "--quick",
     is_flag=True,
@@ -429,10 +429,10 @@ def validate(dataset: Path, quick: bool) -> None:
 
 
 @cli.command()
-@click.argument("dataset", type=click.Path(path_type=Path))
+@click.argument("dataset", type=PathArg())
 @click.option(
     "--out",
-    type=OutPath(),
+    type=PathArg(),
     default=Path("preview.png"),
     show_default=True,
     help="PNG contact sheet to write.",
@@ -465,7 +465,7 @@ def preview(dataset: Path, out: Path, scenes: int, max_depth: float) -> None:
 
 
 @cli.command()
-@click.argument("dataset", type=click.Path(path_type=Path))
+@click.argument("dataset", type=PathArg())
 @click.option(
     "--scenes",
     type=int,
@@ -490,7 +490,7 @@ def preview(dataset: Path, out: Path, scenes: int, max_depth: float) -> None:
 )
 @click.option(
     "--out",
-    type=OutPath(),
+    type=PathArg(),
     help="Folder for stats.json and stats.png.  [default: DATASET]",
 )
 @click.option(
@@ -541,9 +541,7 @@ def stats(dataset: Path, scenes: int, shift: int, flicker: int, out, max_depth: 
     help="Scenes whose first and last frames are re-rendered with 256 samples for PSNR.",
 )
 @_DEVICE
-@click.option(
-    "--csv", "csv_path", type=click.Path(path_type=Path), help="Also write the table here."
-)
+@click.option("--csv", "csv_path", type=PathArg(), help="Also write the table here.")
 def bench(
     resolutions: str, configs: str, workers: int, psnr_scenes: int, device: str, csv_path
 ) -> None:

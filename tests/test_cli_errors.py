@@ -86,14 +86,29 @@ def test_scenes_beyond_the_limit_leave_no_folder_that_refuses_later_runs(tmp_pat
         ["stats", "{tmp}", "--out", ""],
         ["preview", "{tmp}", "--out", ""],
         ["merge", "", "{tmp}"],
+        ["--textures", "", "--out", "{tmp}/out"],
+        ["validate", ""],
+        ["index", ""],
     ],
 )
-def test_empty_output_path_is_refused_not_the_current_folder(tmp_path, monkeypatch, args):
+def test_empty_path_is_refused_not_the_current_folder(tmp_path, monkeypatch, args):
     """Path("") is the current folder: `--out ""` used to render into it."""
     monkeypatch.chdir(tmp_path)
     argv = [a.format(tmp=tmp_path) for a in args]
     assert_user_error(invoke_cli(*argv), "must be a path, got ''")
     assert sorted(tmp_path.iterdir()) == []
+
+
+def test_out_whose_dataset_json_leads_outside_is_refused(tmp_path):
+    """--out's dataset.json as a symlink to a file outside: refused, that file left alone."""
+    outside = tmp_path / "elsewhere.json"
+    outside.write_text("{}")
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "dataset.json").symlink_to(outside)
+    result = invoke_cli("--out", out)
+    assert_user_error(result, f"--out: '{out}': 'dataset.json' leads through a symlink")
+    assert outside.read_text() == "{}" and sorted(p.name for p in out.iterdir()) == ["dataset.json"]
 
 
 def test_preset_that_is_not_utf8_is_one_line(tmp_path):

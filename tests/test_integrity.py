@@ -365,6 +365,10 @@ def test_dataset_files_that_are_symlinks_outside_are_refused(ds, tmp_path, name)
         assert_user_error(proc, f"DATASET: '{ds}': {words}")
     with pytest.raises(DatasetError, match="leads through a symlink"):
         Dataset(ds)
+    if name == "dataset.json":  # merge reads no manifest of its sources
+        proc = run_cli("merge", tmp_path / "m", ds, check=False, timeout=TIMEOUT)
+        assert_user_error(proc, f"SOURCES: '{ds}': {words}")
+        assert not (tmp_path / "m").exists()
     assert not (tmp_path / "p.png").exists() and not (ds / "stats.json").exists()
 
 
