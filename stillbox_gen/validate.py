@@ -3,7 +3,10 @@
 Besides the schemas and the manifest, it checks the integrity of the files: each scene's
 ``.records`` file equals its metadata.json entry, every file matches the SHA-256 in its record,
 the folders hold no file that no record names, and dataset.json's seed and fingerprint agree with
-its config and the scenes' seeds. Paths from records never leave the dataset folder.
+its config and the scenes' seeds. What dataset.json's config determines is recomputed and
+compared: each chunk's metadata.json ``args``, each record's K, frame size, time step and photo
+names, and dataset.json's own frame and split counts and render settings. Paths from records
+(and dataset.json, manifest.parquet, metadata.json themselves) never leave the dataset folder.
 """
 
 from __future__ import annotations
@@ -126,7 +129,8 @@ def _derived_problems(info: dict, cfg: config.DatasetConfig) -> list[str]:
 
     problems = []
     render = info["render"] if isinstance(info["render"], dict) else {}
-    want = dataset_info(cfg, info["scenes"], complete=True, device=render.get("device") or "CPU")
+    device = render.get("device") or config.CPU_DEVICE  # not derived from the config
+    want = dataset_info(cfg, info["scenes"], complete=True, device=device)
     for key in ("format_version", "preset", "frames_per_scene", "chunk_size"):
         if key in info and info[key] != want[key]:
             problems.append(
@@ -153,8 +157,8 @@ def _derived_problems(info: dict, cfg: config.DatasetConfig) -> list[str]:
     v = info["versions"]
     if not (isinstance(v, dict) and all(isinstance(x, str) for x in v.values())):
         problems.append(f"{DATASET_JSON}: versions is not a {{package: version}} object")
-    elif sorted(v) != sorted(versions_keys()):
-        problems.append(f"{DATASET_JSON}: versions names {sorted(v)}, expected {versions_keys()}")
+    elif sorted(v) != _versions_keys():
+        problems.append(f"{DATASET_JSON}: versions names {sorted(v)}, expected {_versions_keys()}")
     bad = [n for n in cfg.materials.texture_files if not config.is_plain_name(n)]
     if bad:
         problems.append(
@@ -164,7 +168,7 @@ def _derived_problems(info: dict, cfg: config.DatasetConfig) -> list[str]:
     return problems
 
 
-def versions_keys() -> list[str]:
+def _versions_keys() -> list[str]:
     """The packages dataset.json's ``versions`` names (dataset.versions)."""
     from .dataset import versions
 
