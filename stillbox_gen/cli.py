@@ -59,6 +59,19 @@ def cli() -> None:
     """
 
 
+class PathArg(click.Path):
+    """A path option or argument (``--out``, ``DATASET``, ``--textures``...): a Path, never the
+    empty string, which Path would silently read as the current folder."""
+
+    def __init__(self) -> None:
+        super().__init__(path_type=Path)
+
+    def convert(self, value, param, ctx):
+        if isinstance(value, str) and not value.strip():
+            self.fail(f"must be a path, got {value!r}", param, ctx)
+        return super().convert(value, param, ctx)
+
+
 def parse_resolution(value: str) -> tuple[int, int]:
     text = value.lower().strip()
     try:
@@ -119,7 +132,7 @@ DEFAULT_SCENES = 100  # --scenes
 )
 @click.option(
     "--out",
-    type=click.Path(path_type=Path),
+    type=PathArg(),
     help="Output folder.  [default: data/stillbox-<W>[x<H>]]",
 )
 @click.option(
@@ -166,7 +179,7 @@ DEFAULT_SCENES = 100  # --scenes
 )
 @click.option(
     "--textures",
-    type=click.Path(path_type=Path),
+    type=PathArg(),
     help=f"Folder of your photos used as textures (texture ratio {_show(_MATS.texture_ratio)}).  "
     "[default: the photos bundled with bpy]",
 )
@@ -274,6 +287,10 @@ def run_options(o: dict, cfg: config.DatasetConfig) -> RunOptions:
             raise ConfigError(f"--{flag}: must be at least 1, got {o[flag]}")
     if o["threads"] < 0:
         raise ConfigError(f"--threads: must be >= 0, got {o['threads']}")
+    for flag in ("scenes", "workers", "threads"):
+        problem = config.limit_problem(flag, o[flag])
+        if problem:
+            raise ConfigError(f"--{flag}: {problem}")
     shard = parse_shard(o["shard"]) if o["shard"] else (0, 1)
     timeout = o["scene_timeout"]
     if not (timeout > 0 and math.isfinite(timeout)):
@@ -310,7 +327,7 @@ def parse_shard(value: str) -> tuple[int, int]:
 
 
 @cli.command()
-@click.argument("dataset", type=click.Path(path_type=Path))
+@click.argument("dataset", type=PathArg())
 def index(dataset: Path) -> None:
     """Index a folder filled by --shard runs: metadata.json, manifest.parquet, dataset.json."""
     from .dataset import index_dataset
@@ -320,8 +337,8 @@ def index(dataset: Path) -> None:
 
 
 @cli.command()
-@click.argument("out", type=click.Path(path_type=Path))
-@click.argument("sources", nargs=-1, required=True, type=click.Path(path_type=Path))
+@click.argument("out", type=PathArg())
+@click.argument("sources", nargs=-1, required=True, type=PathArg())
 def merge(out: Path, sources: tuple[Path, ...]) -> None:
     """Join datasets rendered by --shard I/N into separate folders (SOURCES) into OUT, indexed;
     the files equal a single run with the same seed. OUT may be one of the SOURCES."""
@@ -340,7 +357,7 @@ def build_config(o: dict) -> config.DatasetConfig:
     over it, validated (ConfigError naming the flag, or the preset file and key)."""
     cfg = config.load_preset(o["preset"])
     cam: dict = {}
-    if o["res"]:
+    if o["res"] is not None:
         cam["width"], cam["height"] = parse_resolution(o["res"])
     if o["fov"] is not None and o["focal"] is not None:
         raise ConfigError("--fov and --focal: give one or the other")
@@ -386,7 +403,7 @@ def build_config(o: dict) -> config.DatasetConfig:
 
 
 @cli.command()
-@click.argument("dataset", type=click.Path(path_type=Path))
+@click.argument("dataset", type=PathArg())
 @click.option(
     "--quick",
     is_flag=True,
@@ -414,10 +431,10 @@ def validate(dataset: Path, quick: bool) -> None:
 
 
 @cli.command()
-@click.argument("dataset", type=click.Path(path_type=Path))
+@click.argument("dataset", type=PathArg())
 @click.option(
     "--out",
-    type=click.Path(path_type=Path),
+    type=PathArg(),
     default=Path("preview.png"),
     show_default=True,
     help="PNG contact sheet to write.",
@@ -440,14 +457,17 @@ def preview(dataset: Path, out: Path, scenes: int, max_depth: float) -> None:
     with reading("DATASET"):
         ds = Dataset(dataset)
         ds.indices()  # a dataset without manifest.parquet is refused before the flags
-        if scenes < 1 or max_depth <= 0:
-            raise ConfigError("--scenes and --max-depth: must be positive")
+        if scenes < 1:
+            raise ConfigError(f"--scenes: must be at least 1, got {scenes}")
+        if not (max_depth > 0 and math.isfinite(max_depth)):
+            raise ConfigError(f"--max-depth: must be a positive finite number, got {max_depth}")
+        check_out_file(out)
         contact_sheet(ds, out, scenes, max_depth)
     click.echo(f"wrote {out}")
 
 
 @cli.command()
-@click.argument("dataset", type=click.Path(path_type=Path))
+@click.argument("dataset", type=PathArg())
 @click.option(
     "--scenes",
     type=int,
@@ -472,7 +492,7 @@ def preview(dataset: Path, out: Path, scenes: int, max_depth: float) -> None:
 )
 @click.option(
     "--out",
-    type=click.Path(path_type=Path),
+    type=PathArg(),
     help="Folder for stats.json and stats.png.  [default: DATASET]",
 )
 @click.option(
@@ -523,9 +543,7 @@ def stats(dataset: Path, scenes: int, shift: int, flicker: int, out, max_depth: 
     help="Scenes whose first and last frames are re-rendered with 256 samples for PSNR.",
 )
 @_DEVICE
-@click.option(
-    "--csv", "csv_path", type=click.Path(path_type=Path), help="Also write the table here."
-)
+@click.option("--csv", "csv_path", type=PathArg(), help="Also write the table here.")
 def bench(
     resolutions: str, configs: str, workers: int, psnr_scenes: int, device: str, csv_path
 ) -> None:
@@ -543,6 +561,9 @@ def bench(
             raise ConfigError(f"--res: expected PIXELS:SCENES pairs, got '{item}'") from None
         if px <= 0 or n <= 0:
             raise ConfigError(f"--res: pixels and scenes must be positive, got '{item}'")
+        for key, value in (("camera.width", px), ("scenes", n)):
+            if problem := config.limit_problem(key, value):
+                raise ConfigError(f"--res: {problem} ('{item}')")
         pairs.append((px, n))
     names = [n.strip() for n in configs.split(",") if n.strip()]
     b.configurations(names)  # fails early on unknown names
@@ -557,6 +578,14 @@ def bench(
     if csv_path:
         b.write_csv(rows, csv_path)
         click.echo(f"wrote {csv_path}", err=True)
+
+
+def check_out_file(out: Path, flag: str = "--out") -> None:
+    """A file to write: not a folder, in an existing folder (ConfigError naming ``flag``)."""
+    if out.is_dir():
+        raise ConfigError(f"{flag}: '{out}' is a folder; give a file name such as preview.png")
+    if not out.parent.is_dir():
+        raise ConfigError(f"{flag}: the folder of '{out}' does not exist")
 
 
 def generate_versions() -> str:

@@ -37,6 +37,31 @@ class ConfigError(ValueError):
     """A user mistake in a preset file or a command-line flag (message names it)."""
 
 
+# Upper bounds of every size and count a user sets, by config key ("section.name") or run option
+# (generate's --scenes, --workers, --threads): ConfigError beyond them, before anything is
+# written. Each is far above any real use yet below what exhausts memory or what Blender refuses
+# late, in the workers (Cycles takes at most 1024 bounces).
+LIMITS: dict[str, tuple[int, str]] = {  # key: (largest value, unit)
+    "camera.width": (8192, "pixels"),  # 8K frames: a 256 MB float32 depth map per frame
+    "camera.height": (8192, "pixels"),
+    "camera.frames": (10_000, "frames per scene"),  # StillBox: 10
+    "objects.count": (1000, "objects"),  # StillBox: 20; 1000 samples a layout in about 2 s
+    "render.samples": (4096, "samples per pixel"),  # anti-aliasing only: 16 is --quality high
+    "render.max_bounces": (1024, "bounces"),  # Cycles' own maximum
+    "scenes": (10_000_000, "scenes"),  # 125 times StillBox's 80,000
+    "workers": (256, "workers"),  # about 500 MB of memory each
+    "threads": (1024, "threads"),  # more than any CPU has
+}
+
+
+def limit_problem(key: str, value: int) -> str | None:
+    """Why ``value`` is beyond LIMITS[key] ("must be at most ..."), None when it is not."""
+    most, unit = LIMITS[key]
+    if value <= most:
+        return None
+    return f"must be at most {most:,} {unit}, got {value:,}"
+
+
 @dataclass(frozen=True)
 class CameraConfig:
     """Intrinsics and motion: angles in degrees, distances in metres, OpenCV pixel convention."""
@@ -227,9 +252,15 @@ def load_preset(name_or_path: str) -> DatasetConfig:
     file, origin, name = _find_preset(name_or_path)
     where = _namer(origin)
     try:
-        data = tomllib.loads(file.read_text())
+        data = tomllib.loads(file.read_text(encoding="utf-8"))
     except tomllib.TOMLDecodeError as e:
         raise ConfigError(f"preset {origin}: not valid TOML ({e})") from None
+    except UnicodeDecodeError as e:
+        raise ConfigError(
+            f"preset {origin}: not UTF-8 text (byte {e.start}: {e.reason}); TOML files are UTF-8"
+        ) from None
+    except OSError as e:
+        raise ConfigError(f"preset {origin}: cannot read it ({e.strerror})") from None
     data.pop("description", None)
     sections = {}
     for key, value in data.items():
@@ -274,8 +305,6 @@ def list_texture_files(directory: str) -> tuple[str, ...]:
     one that cannot be decoded whole (e.g. a cut-off JPEG), or says there are none."""
     import cv2
 
-    from . import photos
-
     d = Path(directory)
     if not d.is_dir():
         raise ConfigError(f"--textures: '{directory}' is not a folder")
@@ -290,10 +319,7 @@ def list_texture_files(directory: str) -> tuple[str, ...]:
         except cv2.error:
             ok = False
         if ok:
-            try:
-                photos.check_user(d / n)
-            except ValueError as e:
-                raise ConfigError(f"--textures: {e}") from None
+            _check_photo(d / n, "--textures:")
             good.append(n)
     if not good:
         raise ConfigError(
@@ -301,6 +327,51 @@ def list_texture_files(directory: str) -> tuple[str, ...]:
             f"(looked for {', '.join(IMAGE_EXTENSIONS)})"
         )
     return tuple(good)
+
+
+def _check_photo(path: Path, where: str) -> None:
+    """Decode one photo of a textures folder (ConfigError starting with ``where`` when it is
+    missing or does not decode whole)."""
+    from . import photos
+
+    if not path.is_file():
+        raise ConfigError(f"{where} no image file '{path}'")
+    try:
+        photos.check_user(path)
+    except ValueError as e:
+        raise ConfigError(f"{where} {e}") from None
+
+
+def is_plain_name(name: object) -> bool:
+    """A file name without any folder part: not empty, no '/' or '\\', not '.' or '..'."""
+    return (
+        isinstance(name, str)
+        and name not in ("", ".", "..")
+        and not any(c in name for c in "/\\\x00")
+    )
+
+
+def check_texture_files(cfg: MaterialsConfig, where: Callable[[str], str]) -> None:
+    """A preset's own photos: ``texture_files`` plain names of images in ``textures_dir``
+    (each decoded once, as ``--textures`` does); one without the other is refused."""
+    if not cfg.texture_files and not cfg.textures_dir:
+        return
+    if not cfg.texture_files or not cfg.textures_dir:
+        missing = "texture_files" if cfg.textures_dir else "textures_dir"
+        key = "materials.textures_dir" if cfg.textures_dir else "materials.texture_files"
+        raise ConfigError(f"{where(key)} needs materials.{missing} too")
+    where_files = where("materials.texture_files")
+    bad = [n for n in cfg.texture_files if not is_plain_name(n)]
+    if bad:
+        raise ConfigError(
+            f"{where_files} must be plain file names inside materials.textures_dir, "
+            f"got {_show(bad[0])}"
+        )
+    folder = Path(cfg.textures_dir)
+    if not folder.is_dir():
+        raise ConfigError(f"{where('materials.textures_dir')} '{cfg.textures_dir}' is not a folder")
+    for name in cfg.texture_files:
+        _check_photo(folder / name, where_files)
 
 
 # ---------------------------------------------------------------- validation
@@ -424,11 +495,13 @@ def validate(
     cfg: DatasetConfig, origin: str | None = None, given: Collection[str] | None = None
 ) -> None:
     """Raise ConfigError naming the first bad parameter: wrong type, not finite, out of range,
-    or inconsistent with another. ``origin`` (the preset's file, see preset_origin) and
-    ``given`` (keys "section.name" set by command-line flags) choose how the message names it:
-    the flag, or the preset file and key (see _namer)."""
+    or inconsistent with another, beyond LIMITS, or a preset's photo (materials.texture_files)
+    that is no plain name of an image that decodes. ``origin`` (the preset's file, see
+    preset_origin) and ``given`` (keys "section.name" set by command-line flags) choose how the
+    message names it: the flag, or the preset file and key (see _namer)."""
     where = _namer(origin, given)
     _check_types(cfg, where)
+    _check_limits(cfg, where)
     c, o, m, b, r, lc = cfg.camera, cfg.objects, cfg.materials, cfg.box, cfg.render, cfg.light
     if c.width <= 0 or c.height <= 0:
         key = "camera.width" if c.width <= 0 else "camera.height"
@@ -490,6 +563,8 @@ def validate(
         raise ConfigError(
             f"{where('materials.photos')} must be one of {PHOTO_SOURCES}, got {m.photos!r}"
         )
+    if "materials.texture_files" not in (given or ()):  # --textures has decoded its own
+        check_texture_files(m, where)
     for name in ("texture_ratio", "plain_ratio", "glossy_ratio", "mirror_ratio"):
         if not 0 <= getattr(m, name) <= 1:
             raise ConfigError(
@@ -546,3 +621,13 @@ def validate(
             f"{where('split')} must be three non-negative shares summing to 1, "
             f"got {_show(cfg.split)}"
         )
+
+
+def _check_limits(cfg: DatasetConfig, where: Callable[[str], str]) -> None:
+    """Every config field of LIMITS at most its bound (ConfigError naming the flag or key)."""
+    for key in LIMITS:
+        if "." in key:
+            sec, name = key.split(".")
+            problem = limit_problem(key, getattr(getattr(cfg, sec), name))
+            if problem:
+                raise ConfigError(f"{where(key)} {problem}")

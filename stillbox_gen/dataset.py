@@ -157,6 +157,10 @@ def prepare_output(out: Path, cfg: DatasetConfig, scenes: int, device: str = CPU
         raise ConfigError(f"--out: '{out}' exists and is a file, not a folder")
     existing = out / layout.DATASET_JSON
     recorded = None  # the devices of earlier runs into it
+    try:
+        formats.resolve_inside(out, layout.DATASET_JSON, f"--out: '{out}'")
+    except DatasetError as e:
+        raise ConfigError(str(e)) from None
     if existing.is_file():
         try:
             old = json.loads(existing.read_text())
@@ -273,7 +277,10 @@ def finalize(
 def index_dataset(out: Path, run_info: dict | None = None) -> Totals:
     """Write metadata, manifest and a complete dataset.json for a folder filled by shards;
     ``run_info`` replaces dataset.json's ``run`` block when given."""
-    info_path = out / layout.DATASET_JSON
+    try:
+        info_path = formats.resolve_inside(out, layout.DATASET_JSON, f"DATASET: '{out}'")
+    except DatasetError as e:
+        raise ConfigError(str(e)) from None
     if not info_path.is_file():
         raise ConfigError(
             f"DATASET: '{out}' has no {layout.DATASET_JSON} (not a stillbox-gen dataset)"
@@ -356,12 +363,15 @@ class Dataset:
     dataset.json (:attr:`info`), the manifest's scene list, each chunk's metadata.json.
 
     Every error is a DatasetError (a ValueError) naming the file, or the record whose file name
-    would lead outside ``root``."""
+    would lead outside ``root``; a dataset.json or manifest.parquet that is a symlink leading
+    outside it is refused on construction."""
 
     def __init__(self, root: str | os.PathLike) -> None:
         self.root = Path(root)
         if not self.root.is_dir():
             raise DatasetError(f"'{root}' is not a folder")
+        for name in (layout.DATASET_JSON, layout.MANIFEST):  # before anything is opened
+            formats.resolve_inside(self.root, name, f"'{root}'")
         self._metadata: dict[str, dict[int, dict]] = {}
 
     def __repr__(self) -> str:
@@ -370,7 +380,7 @@ class Dataset:
     @cached_property
     def info(self) -> dict:
         """dataset.json: generator, versions, parameters (``config``), counts."""
-        path = self.root / layout.DATASET_JSON
+        path = self.root / layout.DATASET_JSON  # checked by __init__
         if not path.is_file():
             raise DatasetError(f"'{self.root}' has no dataset.json (not a stillbox-gen dataset)")
         try:
@@ -381,7 +391,7 @@ class Dataset:
     @cached_property
     def splits(self) -> dict[int, str]:
         """{scene index: split} of every scene of the manifest, in index order."""
-        path = self.root / layout.MANIFEST
+        path = self.root / layout.MANIFEST  # checked by __init__
         if not path.is_file():
             raise DatasetError(f"'{self.root}' has no manifest.parquet (not a finished dataset)")
         try:

@@ -50,6 +50,35 @@ def _place(src: Path, dst: Path) -> None:
     os.replace(tmp, dst)
 
 
+def _plan(out: Path, sources: list[Path], scenes: int) -> list[tuple[int, Path, Path, list]]:
+    """(scene, source, its record, its file names) of every scene OUT lacks, from the first
+    source holding it; every record read and every name checked to stay inside its source.
+    ConfigError naming SOURCES when a record is unreadable or no source holds some scenes."""
+    plan, missing = [], []
+    for k in pending_indices(out, scenes):
+        src = next((s for s in sources if layout.record_path(s, k).is_file()), None)
+        if src is None:
+            missing.append(k)
+            continue
+        where = f"SOURCES: scene {k} in '{src}'"
+        rec_src = formats.resolve_inside(src, layout.record_name(k), where)
+        try:
+            names = layout.scene_files(json.loads(rec_src.read_text()))
+        except (OSError, json.JSONDecodeError, KeyError, TypeError) as e:
+            raise ConfigError(f"{where} is unreadable ({e})") from None
+        where = f"SOURCES: {rec_src}: scene {k}"
+        for name in names:
+            formats.resolve_inside(src, name, where, folder=layout.chunk_name(k))
+        plan.append((k, src, rec_src, names))
+    if missing:
+        shown = ", ".join(map(str, missing[:10])) + (" ..." if len(missing) > 10 else "")
+        raise ConfigError(
+            f"SOURCES: the merge lacks {len(missing)} of {scenes} scenes ({shown}), which no "
+            "folder holds; run the missing shards first"
+        )
+    return plan
+
+
 def merge_datasets(out: Path, sources: list[Path]) -> tuple[int, Totals]:
     """Copy the complete scenes of ``sources`` into ``out`` and index it.
 
@@ -78,24 +107,15 @@ def _merge(out: Path, sources: list[Path]) -> tuple[int, Totals]:
                 f"SOURCES: '{src}' has --scenes {info.get('scenes')}, "
                 f"'{sources[0]}' has {first.get('scenes')}"
             )
+    plan = _plan(out, sources, first["scenes"])  # every refusal before OUT is created
     # the same checks of OUT, and the same "incomplete" mark, as a generation run
     devices = join_devices(*(info.get("render", {}).get("device") for info in infos))
     prepare_output(out, config.from_dict(first["config"]), first["scenes"], devices)
 
-    copied = 0
-    for k in pending_indices(out, first["scenes"]):
-        src = next((s for s in sources if layout.record_path(s, k).is_file()), None)
-        if src is None:  # index_dataset below names every missing scene
-            continue
+    for k, src, rec_src, names in plan:
         chunk = layout.chunk_name(k)
         where = f"SOURCES: scene {k} in '{src}'"
-        rec_src = formats.resolve_inside(src, layout.record_name(k), where)
         rec_dst = formats.resolve_inside(out, layout.record_name(k), where)
-        try:
-            record = json.loads(rec_src.read_text())
-            names = layout.scene_files(record)
-        except (OSError, json.JSONDecodeError, KeyError, TypeError) as e:
-            raise ConfigError(f"{where} is unreadable ({e})") from None
         where = f"SOURCES: {rec_src}: scene {k}"
         pairs = [
             (
@@ -112,5 +132,4 @@ def _merge(out: Path, sources: list[Path]) -> tuple[int, Totals]:
             _place(rec_src, rec_dst)
         except OSError as e:
             raise ConfigError(f"SOURCES: scene {k} in '{src}' is unreadable ({e})") from None
-        copied += 1
-    return copied, index_dataset(out, {"merged_from": [str(s) for s in sources]})
+    return len(plan), index_dataset(out, {"merged_from": [str(s) for s in sources]})

@@ -35,6 +35,9 @@ def contact_sheet(root: Path | Dataset, out: Path, scenes: int, max_depth: float
         image, ax=axes.ravel().tolist(), label="depth (m), clipped for display", shrink=0.8
     )
     tmp = out.with_name(f".{out.name}.tmp.png")
-    fig.savefig(tmp, dpi=100)
-    plt.close(fig)
-    tmp.replace(out)
+    try:
+        fig.savefig(tmp, dpi=100)
+        tmp.replace(out)
+    finally:
+        plt.close(fig)
+        tmp.unlink(missing_ok=True)  # left only when writing failed

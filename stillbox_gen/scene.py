@@ -18,7 +18,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from . import camera, photos, portable, shapes
-from .config import DatasetConfig, MaterialsConfig
+from .config import DatasetConfig, MaterialsConfig, is_plain_name
 
 # Pattern frequencies (features per metre), low enough that textures stay legible at 64 px with a
 # 90 deg FOV: one pixel covers distance / 32 metres, i.e. ~0.5 m on an object at 15 m and ~2 m
@@ -145,6 +145,22 @@ def photo_files(cfg: MaterialsConfig) -> tuple[str, ...]:
     if cfg.texture_files:
         return cfg.texture_files
     return photos.BUNDLED_PHOTOS if cfg.photos == "bundled" else ()
+
+
+def foreign_photos(record: dict, cfg: MaterialsConfig) -> list:
+    """Photo names of a scene record's materials (its primitives' and walls') that are not among
+    the dataset's photos (photo_files of its config) as plain file names: what a reader must
+    refuse before opening ``textures_dir / name``. Empty for a record the generator wrote."""
+    allowed = {n for n in photo_files(cfg) if is_plain_name(n)}
+    prims = record.get("primitives")
+    surfaces = [*(prims if isinstance(prims, list) else []), record.get("box")]
+    found = []
+    for surface in surfaces:
+        mat = surface.get("material") if isinstance(surface, dict) else None
+        image = mat.get("image") if isinstance(mat, dict) else None
+        if image is not None and image not in allowed:
+            found.append(image)
+    return found
 
 
 def sample_material(

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 import tempfile
 from pathlib import Path
 
@@ -38,6 +39,8 @@ import numpy as np
 from . import formats, layout
 from .config import ConfigError
 from .dataset import MAX_DEPTH, NOMINAL_SHIFT, Dataset
+from .formats import DatasetError
+from .scene import foreign_photos
 
 #: Pixel-depth bands in metres: [0, 5), [5, 10), ..., [75, 100), then [100, inf) ("> 100", which
 #: also holds pixels whose ray met no surface, stored as formats.NO_SURFACE_DEPTH).
@@ -490,6 +493,25 @@ def spec_from_record(rec: dict, frames: list[int] | None = None) -> dict:
     return SceneSpec.from_dict(spec).to_dict()
 
 
+def _check_photos(ds: Dataset, scenes: list) -> None:
+    """Every photo a scene names is one of dataset.json's config (a plain name, opened inside
+    its textures_dir or the bundled folder); DatasetError naming the record otherwise."""
+    from .config import from_dict
+
+    try:
+        materials = from_dict(ds.info["config"]).materials
+    except Exception as e:  # noqa: BLE001 - any malformed config is the dataset's
+        raise DatasetError(f"'{ds.root / 'dataset.json'}': config is not readable ({e})") from None
+    for scene in scenes:
+        found = foreign_photos(scene.record, materials)
+        if found:
+            raise DatasetError(
+                f"{ds.root / layout.chunk_name(scene.index) / 'metadata.json'}: scene "
+                f"{scene.index}: photo {found[0]!r} is not one of the dataset's photos "
+                "(config.materials)"
+            )
+
+
 def flicker_stats(
     root: Path | Dataset, count: int, progress: bool = False, threads: int = 0
 ) -> dict:
@@ -509,6 +531,7 @@ def flicker_stats(
         raise ConfigError(f"--flicker: must be between 0 and {len(available)} scenes, got {count}")
     scenes = ds.scenes(limit=count)
     cfg = info["config"]
+    _check_photos(ds, scenes)
     cam, render = cfg["camera"], cfg["render"]
     image_format = render.get("image_format", "png")
     init = (render, cam["width"], cam["height"], threads, cfg["materials"].get("textures_dir"))
@@ -680,6 +703,18 @@ def plot(stats: dict, path: Path) -> None:
     tmp.replace(path)
 
 
+def _check_out_folder(out: Path) -> None:
+    """--out can be written: a folder, or a path whose nearest existing ancestor is a writable
+    folder (created after the measurements). ConfigError naming --out otherwise."""
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"--out: '{out}' is a file, not a folder")
+    existing = next(p for p in (out, *out.absolute().parents) if p.exists())
+    if not existing.is_dir():
+        raise ConfigError(f"--out: '{existing}' is a file, not a folder")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise ConfigError(f"--out: cannot create '{out}' ('{existing}' is not writable)")
+
+
 def run(
     root: Path,
     scenes: int = 200,
@@ -699,14 +734,15 @@ def run(
             f"--flicker: at most the {min(scenes, len(available))} scenes used, got {flicker}"
         )
     out = Path(out) if out is not None else ds.root
-    if out.exists() and not out.is_dir():
-        raise ConfigError(f"--out: '{out}' is a file, not a folder")
-    try:
+    _check_out_folder(out)
+    if flicker:
+        _check_photos(ds, ds.scenes(limit=flicker))  # before measuring: they are re-rendered
+    stats = dataset_stats(ds, scenes, shift, max_depth, progress)
+    stats["flicker"] = flicker_stats(ds, flicker, progress) if flicker else None
+    try:  # created only now: a refusal during the measurements leaves nothing behind
         out.mkdir(parents=True, exist_ok=True)
     except OSError as e:
         raise ConfigError(f"--out: cannot create '{out}' ({e.strerror})") from None
-    stats = dataset_stats(ds, scenes, shift, max_depth, progress)
-    stats["flicker"] = flicker_stats(ds, flicker, progress) if flicker else None
     formats.atomic_write_json(out / "stats.json", stats, indent=2)
     plot(stats, out / "stats.png")
     return stats

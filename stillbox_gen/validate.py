@@ -3,12 +3,16 @@
 Besides the schemas and the manifest, it checks the integrity of the files: each scene's
 ``.records`` file equals its metadata.json entry, every file matches the SHA-256 in its record,
 the folders hold no file that no record names, and dataset.json's seed and fingerprint agree with
-its config and the scenes' seeds. Paths from records never leave the dataset folder.
+its config and the scenes' seeds. What dataset.json's config determines is recomputed and
+compared: each chunk's metadata.json ``args``, each record's K, frame size, time step and photo
+names, and dataset.json's own frame and split counts and render settings. Paths from records
+(and dataset.json, manifest.parquet, metadata.json themselves) never leave the dataset folder.
 """
 
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import cv2
@@ -68,6 +72,153 @@ def _info_problems(info: dict) -> list[str]:
         problems.append(
             f"{DATASET_JSON}: fingerprint {info['fingerprint']} does not match its config "
             f"({fingerprint}): the config was edited"
+        )
+    return problems
+
+
+def _config_of(info: dict) -> config.DatasetConfig | None:
+    """dataset.json's config when it is a stillbox-gen config matching its fingerprint (the
+    other cases are reported by _info_problems), else None."""
+    try:
+        cfg = config.from_dict(info["config"])
+        return cfg if cfg.fingerprint() == info["fingerprint"] else None
+    except Exception:  # noqa: BLE001 - reported by _info_problems
+        return None
+
+
+def _first_difference(got, want, path: str) -> tuple[str, object, object] | None:
+    """(path, got, want) of the first value that differs between two JSON values (floats
+    within 1e-12 relative, as another machine's libm may round derived angles otherwise)."""
+    if isinstance(got, dict) and isinstance(want, dict):
+        for key in sorted({*got, *want}, key=str):
+            if key not in got or key not in want:
+                return f"{path}.{key}", got.get(key, "(missing)"), want.get(key, "(missing)")
+            found = _first_difference(got[key], want[key], f"{path}.{key}")
+            if found:
+                return found
+        return None
+    if isinstance(got, list) and isinstance(want, list) and len(got) == len(want):
+        for i, (a, b) in enumerate(zip(got, want, strict=True)):
+            found = _first_difference(a, b, f"{path}[{i}]")
+            if found:
+                return found
+        return None
+    numbers = all(isinstance(v, int | float) and not isinstance(v, bool) for v in (got, want))
+    if numbers and math.isclose(got, want, rel_tol=1e-12):
+        return None
+    return None if got == want and type(got) is type(want) else (path, got, want)
+
+
+# dataset.json's render settings that its config determines (the others describe conventions)
+RENDER_FROM_CONFIG = (
+    "shading",
+    "samples",
+    "max_bounces",
+    "rgb",
+    "denoiser",
+    "noise_seed",
+    "photos",
+)
+RENDER_REQUIRED = RENDER_FROM_CONFIG[:4]
+
+
+def _derived_problems(info: dict, cfg: config.DatasetConfig) -> list[str]:
+    """dataset.json's fields that its config determines (render settings, frames, splits,
+    versions' shape), recomputed from the config and compared."""
+    from .dataset import dataset_info
+
+    problems = []
+    render = info["render"] if isinstance(info["render"], dict) else {}
+    device = render.get("device") or config.CPU_DEVICE  # not derived from the config
+    want = dataset_info(cfg, info["scenes"], complete=True, device=device)
+    for key in ("format_version", "preset", "frames_per_scene", "chunk_size"):
+        if key in info and info[key] != want[key]:
+            problems.append(
+                f"{DATASET_JSON}: {key} is {info[key]!r}, but its config gives {want[key]!r}"
+            )
+    for key in RENDER_FROM_CONFIG:  # older datasets may lack the last ones
+        if (key in render or key in RENDER_REQUIRED) and render.get(key) != want["render"][key]:
+            problems.append(
+                f"{DATASET_JSON}: render.{key} is {render.get(key, '(missing)')!r}, but its "
+                f"config gives {want['render'][key]!r}"
+            )
+    if info["frames"] != info["scenes"] * cfg.camera.frames:
+        problems.append(
+            f"{DATASET_JSON}: frames {info['frames']!r} is not scenes x config.camera.frames "
+            f"({info['scenes']} x {cfg.camera.frames})"
+        )
+    splits = [manifest.split_of(cfg.seed, k, cfg.split) for k in range(info["scenes"])]
+    counts = {s: splits.count(s) for s in manifest.SPLITS}
+    if info["split_scenes"] != counts:
+        problems.append(
+            f"{DATASET_JSON}: split_scenes {info['split_scenes']!r} differs from the scenes' "
+            f"splits, which (seed, config.split) give ({counts})"
+        )
+    v = info["versions"]
+    if not (isinstance(v, dict) and all(isinstance(x, str) for x in v.values())):
+        problems.append(f"{DATASET_JSON}: versions is not a {{package: version}} object")
+    elif sorted(v) != _versions_keys():
+        problems.append(f"{DATASET_JSON}: versions names {sorted(v)}, expected {_versions_keys()}")
+    bad = [n for n in cfg.materials.texture_files if not config.is_plain_name(n)]
+    if bad:
+        problems.append(
+            f"{DATASET_JSON}: config.materials.texture_files names {bad[0]!r}, which is no plain "
+            "file name (it would lead outside textures_dir)"
+        )
+    return problems
+
+
+def _versions_keys() -> list[str]:
+    """The packages dataset.json's ``versions`` names (dataset.versions)."""
+    from .dataset import versions
+
+    return sorted(versions())
+
+
+def _args_problems(info: dict, args: dict, where: str) -> list[str]:
+    """A chunk's metadata.json ``args`` against what dataset.json's config and version give."""
+    from .dataset import chunk_args
+
+    version = info["versions"].get("stillbox-gen") if isinstance(info["versions"], dict) else None
+    want = chunk_args(info["config"], f"stillbox-gen {version}")
+    render = info["render"] if isinstance(info["render"], dict) else {}
+    want["depth_convention"] = render.get("depth", want["depth_convention"])  # its own version's
+    found = _first_difference(args, want, "args")
+    if found is None:
+        return []
+    path, got, expected = found
+    return [f"{where}: {path} is {got!r}, but dataset.json gives {expected!r}"]
+
+
+def _scene_config_problems(s: dict, cfg: config.DatasetConfig, where: str) -> list[str]:
+    """A record's intrinsics, frame size, time step and photos against dataset.json's config."""
+    from .scene import foreign_photos
+
+    where = f"{where}: scene {s['index']}"
+    c = cfg.camera
+    problems = []
+    if s["resolution"] != [c.width, c.height]:
+        problems.append(
+            f"{where}: resolution {s['resolution']} differs from dataset.json's config "
+            f"({c.width}x{c.height})"
+        )
+    try:
+        K = np.asarray(s["K"], dtype=float)
+    except ValueError:  # rows of unequal lengths
+        K = np.zeros(0)
+    if K.shape != (3, 3) or not np.allclose(K, c.K(), rtol=1e-9, atol=1e-9):
+        problems.append(
+            f"{where}: K {s['K']} differs from the K of dataset.json's config ({c.K().tolist()})"
+        )
+    if not math.isclose(s["time_step"], c.time_step, rel_tol=1e-12):
+        problems.append(
+            f"{where}: time_step {s['time_step']} differs from dataset.json's config "
+            f"({c.time_step})"
+        )
+    found = foreign_photos(s, cfg.materials)
+    if found:
+        problems.append(
+            f"{where}: photo {found[0]!r} is not one of the dataset's photos (config.materials)"
         )
     return problems
 
@@ -181,7 +332,10 @@ def validate_dataset(root: Path, check_pixels: bool = True) -> tuple[list[str], 
     stats: dict = {"scenes": 0, "frames": 0, "rows": 0, "notes": []}
     info_path = root / DATASET_JSON
     try:
+        formats.resolve_inside(root, DATASET_JSON, DATASET_JSON)
         info = json.loads(info_path.read_text())
+    except formats.UnsafePathError as e:
+        return [str(e)], stats
     except (OSError, json.JSONDecodeError) as e:
         return [f"{info_path}: missing or not JSON ({e})"], stats
     problems += _schema_problems(info, schema.DATASET, DATASET_JSON)
@@ -190,6 +344,11 @@ def validate_dataset(root: Path, check_pixels: bool = True) -> tuple[list[str], 
     problems += _info_problems(info)
     if not isinstance(info["config"], dict):
         return problems, stats
+    if problem := config.limit_problem("scenes", info["scenes"]):
+        return [*problems, f"{DATASET_JSON}: scenes {problem}"], stats
+    cfg = _config_of(info)
+    if cfg is not None:
+        problems += _derived_problems(info, cfg)
     n_scenes, n_frames = info["scenes"], info["frames_per_scene"]
     n_chunks = layout.chunk_count(n_scenes)
     expected_dirs = {str(c) for c in range(n_chunks)}
@@ -219,6 +378,8 @@ def validate_dataset(root: Path, check_pixels: bool = True) -> tuple[list[str], 
         if found:
             problems += _unsafe_names(root, str(c), meta)
             continue
+        if cfg is not None:
+            problems += _args_problems(info, meta["args"], f"{c}/metadata.json")
         want = list(layout.chunk_scenes(c, n_scenes))
         got = [s["index"] for s in meta["scenes"]]
         if got != want:
@@ -236,6 +397,8 @@ def validate_dataset(root: Path, check_pixels: bool = True) -> tuple[list[str], 
                 )
                 continue
             problems += _record_problems(root, s)
+            if cfg is not None:
+                problems += _scene_config_problems(s, cfg, f"{c}/metadata.json")
             found, has_sums = _file_problems(root, str(c), s, check_pixels)
             problems += found
             if not has_sums:
@@ -244,6 +407,11 @@ def validate_dataset(root: Path, check_pixels: bool = True) -> tuple[list[str], 
         problems += _stray_files(root, str(c), named, {s["scene_in_chunk"] for s in meta["scenes"]})
     stats["scenes"], stats["frames"] = len(records), len(records) * n_frames
     problems += _seed_problems(info["seed"], records)
+    if len(records) == n_scenes and info["rejected_scenes"] != sum(r["rejected"] for r in records):
+        problems.append(
+            f"{DATASET_JSON}: rejected_scenes {info['rejected_scenes']!r} differs from the "
+            f"records' sum ({sum(r['rejected'] for r in records)})"
+        )
     if unchecked:
         stats["notes"].append(
             f"{len(unchecked)} of {len(records)} scenes (from {unchecked[0]}) have no checksums "
@@ -254,6 +422,11 @@ def validate_dataset(root: Path, check_pixels: bool = True) -> tuple[list[str], 
         stats["notes"].append("--quick: checksums and pixels not checked")
 
     man_path = root / MANIFEST
+    try:
+        formats.resolve_inside(root, MANIFEST, MANIFEST)
+    except formats.UnsafePathError as e:
+        problems.append(str(e))
+        return problems, stats
     try:
         table = manifest.read_manifest(man_path)
     except Exception as e:  # noqa: BLE001

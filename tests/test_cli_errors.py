@@ -40,6 +40,11 @@ from stillbox_gen import config
         (["--seed", "-1"], ["--seed: must be a non-negative integer, got -1"]),
         (["--scene-timeout", "nan"], ["--scene-timeout"]),
         (["--ray-address", "h:1"], ["--ray-address: only with --backend ray"]),
+        (["--res", ""], ["--res: expected N or WxH in pixels, got ''"]),
+        (["--res", "100000"], ["--res: must be at most 8,192 pixels, got 100,000"]),
+        (["--samples", "1000000000000"], ["--samples: must be at most 4,096 samples per pixel"]),
+        (["--threads", "100000000000"], ["--threads: must be at most 1,024 threads"]),
+        (["--scenes", "1000000000000"], ["--scenes: must be at most 10,000,000 scenes"]),
     ],
 )
 def test_bad_flag_is_a_one_line_error_and_writes_nothing(tmp_path, args, words):
@@ -64,6 +69,84 @@ def test_end_to_end_a_bad_command_exits_2_with_one_line_and_writes_nothing(tmp_p
     assert_user_error(proc, *words)
     assert proc.stdout == ""
     assert sorted(tmp_path.iterdir()) == []
+
+
+def test_scenes_beyond_the_limit_leave_no_folder_that_refuses_later_runs(tmp_path):
+    """`--scenes 1e12` used to write dataset.json first, and every later run of the folder was
+    refused as "fewer than the 1000000000000 scenes already in"."""
+    out = tmp_path / "out"
+    assert_user_error(invoke_cli("--scenes", 10**12, "--out", out), "--scenes: must be at most")
+    assert not out.exists()
+
+
+@pytest.mark.parametrize(
+    "args",
+    [
+        ["--out", ""],
+        ["stats", "{tmp}", "--out", ""],
+        ["preview", "{tmp}", "--out", ""],
+        ["merge", "", "{tmp}"],
+        ["--textures", "", "--out", "{tmp}/out"],
+        ["validate", ""],
+        ["index", ""],
+    ],
+)
+def test_empty_path_is_refused_not_the_current_folder(tmp_path, monkeypatch, args):
+    """Path("") is the current folder: `--out ""` used to render into it."""
+    monkeypatch.chdir(tmp_path)
+    argv = [a.format(tmp=tmp_path) for a in args]
+    assert_user_error(invoke_cli(*argv), "must be a path, got ''")
+    assert sorted(tmp_path.iterdir()) == []
+
+
+def test_out_whose_dataset_json_leads_outside_is_refused(tmp_path):
+    """--out's dataset.json as a symlink to a file outside: refused, that file left alone."""
+    outside = tmp_path / "elsewhere.json"
+    outside.write_text("{}")
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "dataset.json").symlink_to(outside)
+    result = invoke_cli("--out", out)
+    assert_user_error(result, f"--out: '{out}': 'dataset.json' leads through a symlink")
+    assert outside.read_text() == "{}" and sorted(p.name for p in out.iterdir()) == ["dataset.json"]
+
+
+def test_preset_that_is_not_utf8_is_one_line(tmp_path):
+    preset = tmp_path / "latin1.toml"
+    preset.write_bytes(b"# caf\xe9\n[camera]\n")
+    out = tmp_path / "out"
+    assert_user_error(invoke_cli("--preset", preset, "--out", out), f"preset {preset}: not UTF-8")
+    assert not out.exists()
+
+
+def test_preset_photos_outside_a_plain_name_are_refused_before_writing(tmp_path):
+    """textures_dir = "/etc" with texture_files = ["passwd"] used to be accepted and fail late."""
+    preset = tmp_path / "etc.toml"
+    preset.write_text('[materials]\ntextures_dir = "/etc"\ntexture_files = ["passwd"]\n')
+    out = tmp_path / "out"
+    result = invoke_cli("--preset", preset, "--out", out)
+    assert_user_error(result, f"preset {preset}: materials.texture_files '/etc/passwd' cannot be")
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("value", ["nan", "inf", "0"])
+def test_preview_max_depth_must_be_positive_and_finite(default_dataset, tmp_path, value):
+    out = tmp_path / "sheet.png"
+    result = invoke_cli("preview", default_dataset, "--out", out, "--max-depth", value)
+    assert_user_error(result, f"--max-depth: must be a positive finite number, got {float(value)}")
+    assert not out.exists()
+
+
+def test_preview_out_that_is_a_folder_is_refused_and_leaves_nothing(default_dataset, tmp_path):
+    """It used to end in a traceback and leave `.outdir.tmp.png` beside the folder."""
+    folder = tmp_path / "outdir"
+    folder.mkdir()
+    assert_user_error(invoke_cli("preview", default_dataset, "--out", folder), "--out", "folder")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["outdir"]
+    assert list(folder.iterdir()) == []
+    missing = tmp_path / "no" / "sheet.png"
+    assert_user_error(invoke_cli("preview", default_dataset, "--out", missing), "--out")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["outdir"]
 
 
 def test_texture_folder_without_images_is_refused(tmp_path):
@@ -150,6 +233,23 @@ def test_validate_reports_problems_by_file(tmp_path):
 def test_bad_shard_is_refused_before_any_write(tmp_path, value):
     assert_user_error(invoke_cli("--shard", value, "--out", tmp_path / "x"), "--shard")
     assert not (tmp_path / "x").exists()
+
+
+def test_bench_resolution_beyond_the_limit_is_refused():
+    result = invoke_cli("bench", "--res", "100000:1")
+    assert_user_error(result, "--res: must be at most 8,192 pixels, got 100,000 ('100000:1')")
+
+
+def test_validate_refuses_a_scene_count_beyond_the_limit_without_looping(tmp_path):
+    """A dataset.json claiming 10^12 scenes is reported at once, not walked chunk by chunk."""
+    from stillbox_gen.dataset import dataset_info
+
+    info = dataset_info(config.DatasetConfig(), 10**12, complete=True)
+    info.update(frames=10**13, rejected_scenes=0, split_scenes={}, run={})
+    (tmp_path / "dataset.json").write_text(json.dumps(info))
+    result = invoke_cli("validate", tmp_path)
+    assert result.returncode == 1
+    assert "dataset.json: scenes must be at most 10,000,000 scenes" in result.stdout
 
 
 def test_unknown_bench_config_is_refused():

@@ -210,3 +210,140 @@ def test_truncated_texture_file_is_named(tmp_path, capfd, name):
     assert capfd.readouterr().err == ""
     cut.write_bytes(_photo(cut))  # the whole file is accepted
     assert config.list_texture_files(str(tmp_path)) == tuple(sorted(["good.png", name]))
+
+
+# ---------------------------------------------------------------- limits (config.LIMITS)
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("[camera]\nwidth = 3000000000", "camera.width must be at most 8,192 pixels"),
+        ("[camera]\nheight = 8193", "camera.height must be at most 8,192 pixels, got 8,193"),
+        ("[camera]\nframes = 10001", "camera.frames must be at most 10,000 frames per scene"),
+        ("[objects]\ncount = 100000000", "objects.count must be at most 1,000 objects"),
+        ("[render]\nsamples = 4097", "render.samples must be at most 4,096 samples per pixel"),
+        ("[render]\nmax_bounces = 10000000000", "render.max_bounces must be at most 1,024"),
+    ],
+)
+def test_preset_value_beyond_its_limit_names_file_and_key(tmp_path, text, message):
+    """Sizes and counts that used to hang, exhaust memory or fail late in the workers."""
+    path = preset(tmp_path, text)
+    with pytest.raises(ConfigError) as e:
+        build("--preset", path)
+    assert str(e.value).startswith(f"preset {path}: {message}"), str(e.value)
+
+
+@pytest.mark.parametrize(
+    ("args", "line"),
+    [
+        (["--res", "100000"], "--res: must be at most 8,192 pixels, got 100,000"),
+        (["--res", "64x8193"], "--res: must be at most 8,192 pixels, got 8,193"),
+        (["--samples", 10**12], "--samples: must be at most 4,096 samples per pixel, got 1,0"),
+        (["--frames", "10001"], "--frames: must be at most 10,000 frames per scene"),
+    ],
+)
+def test_flag_beyond_its_limit_names_the_flag(args, line):
+    with pytest.raises(ConfigError) as e:
+        build(*args)
+    assert str(e.value).startswith(line), str(e.value)
+
+
+@pytest.mark.parametrize(
+    ("flag", "value"), [("--scenes", 10**12), ("--threads", 10**11), ("--workers", 257)]
+)
+def test_run_option_beyond_its_limit_names_the_flag(flag, value):
+    most, unit = config.LIMITS[flag[2:]]
+    ctx = cli.generate.make_context("generate", [flag, str(value)])
+    with pytest.raises(ConfigError) as e:
+        cli.run_options(ctx.params, build())
+    assert str(e.value) == f"{flag}: must be at most {most:,} {unit}, got {value:,}"
+
+
+def test_values_at_the_limits_are_accepted(tmp_path):
+    path = preset(tmp_path, "[objects]\ncount = 1000\n[render]\nmax_bounces = 1024\n")
+    cfg = build("--preset", path, "--res", "8192", "--samples", 4096)
+    assert (cfg.camera.width, cfg.render.samples, cfg.objects.count) == (8192, 4096, 1000)
+    args = ["--scenes", 10_000_000, "--threads", 1024, "--workers", 256]
+    ctx = cli.generate.make_context("generate", [str(a) for a in args])
+    opts = cli.run_options(ctx.params, cfg)
+    assert (opts.scenes, opts.threads, opts.workers) == (10_000_000, 1024, 256)
+
+
+def test_every_limit_is_a_config_field_or_a_run_option():
+    """One table for flags and preset keys: each key names a real field or generate option."""
+    from stillbox_gen.generate import RunOptions
+
+    options = {f.name for f in dataclasses.fields(RunOptions)}
+    for key in config.LIMITS:
+        if "." in key:
+            sec, name = key.split(".")
+            assert name in {f.name for f in dataclasses.fields(config.SECTIONS[sec])}, key
+        else:
+            assert key in options, key
+
+
+# ---------------------------------------------------------------- preset files and their photos
+
+
+def test_preset_that_is_not_utf8_names_the_file(tmp_path):
+    path = tmp_path / "latin1.toml"
+    path.write_bytes("# caf\u00e9\n[camera]\nfov_deg = 60\n".encode("latin-1"))
+    with pytest.raises(ConfigError) as e:
+        build("--preset", path)
+    assert str(e.value).startswith(f"preset {path}: not UTF-8 text"), str(e.value)
+
+
+def test_empty_res_is_refused_not_the_default():
+    with pytest.raises(ConfigError, match=r"^--res: expected N or WxH in pixels, got ''$"):
+        build("--res", "")
+
+
+@pytest.fixture
+def photo_folder(tmp_path):
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    (folder / "good.png").write_bytes(_photo(folder / "good.png"))
+    return folder
+
+
+@pytest.mark.parametrize(
+    ("materials", "message"),
+    [
+        (
+            'textures_dir = "/etc"\ntexture_files = ["passwd"]',
+            "materials.texture_files '/etc/passwd' cannot be decoded",
+        ),
+        (
+            'textures_dir = "{photos}"\ntexture_files = ["../photos/good.png"]',
+            "materials.texture_files must be plain file names inside materials.textures_dir, "
+            "got '../photos/good.png'",
+        ),
+        (
+            'textures_dir = "{photos}"\ntexture_files = ["/etc/passwd"]',
+            "materials.texture_files must be plain file names",
+        ),
+        (
+            'textures_dir = "{photos}"\ntexture_files = ["missing.png"]',
+            "materials.texture_files no image file '{photos}/missing.png'",
+        ),
+        ('textures_dir = "{photos}"', "materials.textures_dir needs materials.texture_files"),
+        ('texture_files = ["good.png"]', "materials.texture_files needs materials.textures_dir"),
+    ],
+)
+def test_preset_photos_are_checked_at_config_time(tmp_path, photo_folder, materials, message):
+    """A preset's own photos: plain names of images in textures_dir that decode, as --textures
+    checks its folder; they used to be accepted and fail late, in the workers."""
+    path = preset(tmp_path, "[materials]\n" + materials.format(photos=photo_folder))
+    with pytest.raises(ConfigError) as e:
+        build("--preset", path)
+    assert str(e.value).startswith(f"preset {path}: {message.format(photos=photo_folder)}"), str(
+        e.value
+    )
+
+
+def test_preset_photos_that_decode_are_accepted(tmp_path, photo_folder):
+    path = preset(
+        tmp_path, f'[materials]\ntextures_dir = "{photo_folder}"\ntexture_files = ["good.png"]\n'
+    )
+    assert build("--preset", path).materials.texture_files == ("good.png",)

@@ -43,13 +43,14 @@ def test_shards_in_separate_folders_merge_into_a_single_run(default_dataset, tmp
     run_cli(*ARGS, "--scenes", 4, "--shard", "1/2", "--workers", 1, "--out", b)
 
     assert_user_error(invoke_cli("merge", merged, a), "lacks 2 of 4 scenes (1, 3)")
+    assert not merged.exists()  # refused before anything is written
     other = tmp_path / "other"
     run_cli("--res", 64, "--seed", 4, "--quiet", "--scenes", 4, "--shard", "1/2", "--out", other)
     clash = invoke_cli("merge", tmp_path / "m2", a, other)
     assert_user_error(clash, f"'{other}' was made with other parameters")
 
     proc = run_cli("merge", merged, a, b)
-    assert "merged 2 scenes from 2 folders; indexed 4 scenes, 40 frames" in proc.stdout
+    assert "merged 4 scenes from 2 folders; indexed 4 scenes, 40 frames" in proc.stdout
     ref, got = file_tree(default_dataset), file_tree(merged)
     assert sorted(ref) == sorted(got)
     assert [n for n in ref if ref[n] != got[n]] == []

@@ -96,6 +96,21 @@ def _edit_seed(root: Path) -> None:
     _edit_json(root / "dataset.json", lambda d: d.update(seed=d["seed"] + 1))
 
 
+def _edit_info(change: Callable[[dict], None]) -> Callable[[Path], None]:
+    """Edit dataset.json, then recompute its fingerprint (a consistent-looking edit)."""
+    from stillbox_gen import config
+
+    def edit(d: dict) -> None:
+        change(d)
+        d["fingerprint"] = config.from_dict(d["config"]).fingerprint()
+
+    return lambda root: _edit_json(root / "dataset.json", edit)
+
+
+def _edit_args(change: Callable[[dict], None]) -> Callable[[Path], None]:
+    return lambda root: _edit_json(root / "0" / "metadata.json", lambda m: change(m["args"]))
+
+
 CORRUPTIONS = {
     "two_pngs_swapped": (
         _swap_pngs,
@@ -127,6 +142,42 @@ CORRUPTIONS = {
     "edited_dataset_seed": (
         _edit_seed,
         ["dataset.json: seed 4 differs from config.seed 3", "dataset.json: seed 4 does not give"],
+    ),
+    # dataset.json against each chunk's metadata.json and the records (issue 21)
+    "fov_60_fingerprint_recomputed": (
+        _edit_info(lambda d: d["config"]["camera"].update(fov_deg=60.0)),
+        [
+            "0/metadata.json: args.config.camera.fov_deg is 90.0, but dataset.json gives 60.0",
+            "0/metadata.json: scene 0: K [[",
+        ],
+    ),
+    "split_scenes": (
+        _edit_info(lambda d: d["split_scenes"].update(train=d["split_scenes"]["train"] + 1)),
+        ["dataset.json: split_scenes {'train': "],
+    ),
+    "frames": (
+        _edit_info(lambda d: d.update(frames=50)),
+        ["dataset.json: frames 50 is not scenes x config.camera.frames (4 x 10)"],
+    ),
+    "render_samples": (
+        _edit_info(lambda d: d["render"].update(samples=64)),
+        ["dataset.json: render.samples is 64, but its config gives 4"],
+    ),
+    "versions": (
+        _edit_info(lambda d: d["versions"].update({"stillbox-gen": "9.9"})),
+        ["0/metadata.json: args.generator is 'stillbox-gen "],
+    ),
+    "metadata_args": (
+        _edit_args(lambda a: a.update(displacement=0.2)),
+        ["0/metadata.json: args.displacement is 0.2, but dataset.json gives 0.1"],
+    ),
+    "metadata_args_config": (
+        _edit_args(lambda a: a["config"]["render"].update(samples=16)),
+        ["0/metadata.json: args.config.render.samples is 16, but dataset.json gives 4"],
+    ),
+    "record_time_step": (
+        lambda root: _edit_record(root, 2, lambda s: s.update(time_step=0.1)),
+        ["0/metadata.json: scene 2: time_step 0.1 differs from dataset.json's config"],
     ),
 }
 
@@ -290,6 +341,86 @@ def test_stats_refuses_a_symlink_leaving_the_dataset(ds, tmp_path):
     proc = run_cli("stats", ds, "--scenes", 1, check=False, timeout=TIMEOUT)
     assert_user_error(proc, "0/metadata.json: scene 0: ", f"symlink to '{fifo}'")
     assert not (ds / "stats.json").exists()
+    new = tmp_path / "new" / "report"  # --out is created only once the measurements are done
+    proc = run_cli("stats", ds, "--scenes", 1, "--out", new, check=False, timeout=TIMEOUT)
+    assert_user_error(proc, "0/metadata.json: scene 0: ", f"symlink to '{fifo}'")
+    assert not (tmp_path / "new").exists()
+
+
+@pytest.mark.parametrize("name", ["dataset.json", "manifest.parquet"])
+def test_dataset_files_that_are_symlinks_outside_are_refused(ds, tmp_path, name):
+    """dataset.json or manifest.parquet as a symlink to a FIFO outside: validate names it (exit
+    1), preview, stats and the reader refuse it in one line; the FIFO is never opened."""
+    from stillbox_gen.dataset import Dataset
+    from stillbox_gen.formats import DatasetError
+
+    fifo = _outside_fifo(tmp_path)
+    (ds / name).unlink()
+    os.symlink(fifo, ds / name)
+    words = f"'{name}' leads through a symlink to '{fifo}', outside the dataset folder"
+    rc, lines = _validate(ds)
+    assert rc == 1 and f"{name}: {words}" in lines, lines
+    for args in (["preview", ds, "--out", tmp_path / "p.png"], ["stats", ds]):
+        proc = run_cli(*args, check=False, timeout=TIMEOUT)
+        assert_user_error(proc, f"DATASET: '{ds}': {words}")
+    with pytest.raises(DatasetError, match="leads through a symlink"):
+        Dataset(ds)
+    if name == "dataset.json":  # merge reads no manifest of its sources
+        proc = run_cli("merge", tmp_path / "m", ds, check=False, timeout=TIMEOUT)
+        assert_user_error(proc, f"SOURCES: '{ds}': {words}")
+        assert not (tmp_path / "m").exists()
+    assert not (tmp_path / "p.png").exists() and not (ds / "stats.json").exists()
+
+
+@pytest.fixture
+def photo_ds(custom_dataset: Path, tmp_path: Path) -> Path:
+    """A private copy of the dataset rendered with --textures, two levels below ``tmp_path``."""
+    out = tmp_path / "a" / "ds"
+    shutil.copytree(custom_dataset, out)
+    return out
+
+
+def test_a_photo_name_leading_outside_is_reported_and_never_opened(photo_ds, tmp_path):
+    """A record's material image '../..' (opened as textures_dir / name by stats --flicker):
+    validate names the record, stats refuses before rendering; the FIFO is never opened."""
+    fifo = _outside_fifo(tmp_path)
+    name = os.path.relpath(fifo, json.loads((photo_ds / "dataset.json").read_text())["config"][
+        "materials"]["textures_dir"])  # fmt: skip
+    _edit_record(photo_ds, 0, lambda s: s["box"]["material"].update(kind="image", image=name))
+    rc, lines = _validate(photo_ds)
+    line = f"0/metadata.json: scene 0: photo '{name}' is not one of the dataset's photos"
+    assert rc == 1 and any(x.startswith(line) for x in lines), lines
+    out = tmp_path / "report"
+    proc = run_cli("stats", photo_ds, "--flicker", 1, "--out", out, check=False, timeout=TIMEOUT)
+    assert_user_error(proc, line)
+    assert not out.exists()
+
+
+def test_texture_files_leading_outside_in_dataset_json_are_reported(photo_ds, tmp_path):
+    """config.materials.texture_files edited to a '..' name, fingerprint recomputed, and the
+    records naming it: validate reports both; stats --flicker refuses the records."""
+    bad = "../outside/secret.png"
+
+    def change(d: dict) -> None:
+        d["config"]["materials"]["texture_files"] = [bad]
+
+    def rename_photos(s: dict) -> None:
+        for material in [p["material"] for p in s["primitives"]] + [s["box"]["material"]]:
+            if material["image"] is not None:
+                material["image"] = bad
+        s["box"]["material"].update(kind="image", image=bad)
+
+    _edit_info(change)(photo_ds)
+    for k in range(3):
+        _edit_record(photo_ds, k, rename_photos)
+    rc, lines = _validate(photo_ds)
+    assert rc == 1
+    assert any(x.startswith(f"dataset.json: config.materials.texture_files names '{bad}'")
+               for x in lines), lines  # fmt: skip
+    assert f"0/metadata.json: scene 0: photo '{bad}' is not one of the dataset's photos " \
+        "(config.materials)" in lines, lines  # fmt: skip
+    proc = run_cli("stats", photo_ds, "--flicker", 1, check=False, timeout=TIMEOUT)
+    assert_user_error(proc, f"scene 0: photo '{bad}' is not one of the dataset's photos")
 
 
 def test_merge_does_not_write_outside_out_for_a_dotdot_record(ds, tmp_path):
@@ -303,8 +434,16 @@ def test_merge_does_not_write_outside_out_for_a_dotdot_record(ds, tmp_path):
     assert_user_error(
         proc, f"SOURCES: {record}: scene 1: path '../../payload.txt' has '..' and leaves"
     )
-    assert [p.name for p in out.parent.iterdir()] == ["out"]
-    assert not list(out.rglob("payload*"))
+    assert list(out.parent.iterdir()) == []  # refused before OUT is created
+
+
+def test_merge_refuses_missing_scenes_before_creating_out(ds, tmp_path):
+    """merge used to create OUT, copy the scenes it had, and only then refuse."""
+    layout.record_path(ds, 2).unlink()
+    out = tmp_path / "out"
+    proc = run_cli("merge", out, ds, check=False, timeout=TIMEOUT)
+    assert_user_error(proc, "SOURCES: the merge lacks 1 of 4 scenes (2), which no folder holds")
+    assert not out.exists()
 
 
 def test_merge_does_not_copy_a_source_symlink_leaving_the_source(ds, tmp_path):
