@@ -401,21 +401,30 @@ def test_invert_pose_round_trip():
 
 
 def test_a_rendered_pair_warped_with_its_true_depth_and_pose(tiny_dataset):
-    """A real Cycles pair of the tiny dataset, frames 6 → 3 of a scene (0.3 m apart): the
-    reference warped with the target's true depth and the recorded poses matches the target
-    far better than the unwarped reference does, away from occlusions and the view's edge."""
+    """A real Cycles pair of the tiny dataset, frames 9 → 0 of a scene (0.9 m apart): the
+    reference warped with the target's true depth and the recorded poses matches the target,
+    away from occlusions and the view's edge, far better than the unwarped reference or a warp
+    with the inverse pose do (what is left is render noise and 64 px aliasing)."""
     from stillbox_gen.dataset import Dataset
 
     scene = Dataset(tiny_dataset).scenes()[0]
-    target, reference = 6, 3
-    as_image = lambda a: torch.from_numpy(a).permute(2, 0, 1)[None].double() / 255  # noqa: E731
-    image_t, image_r = as_image(scene.load_rgb(target)), as_image(scene.load_rgb(reference))
+    target, reference = 9, 0
+
+    def image(frame: int) -> torch.Tensor:
+        return torch.from_numpy(scene.load_rgb(frame)).permute(2, 0, 1)[None].double() / 255
+
+    image_t, image_r = image(target), image(reference)
     depth = torch.from_numpy(scene.load_depth(target).astype(np.float64))[None, None]
-    rel = torch.from_numpy(scene.relative_pose(target, reference))
     k = torch.from_numpy(scene.K)
-    warped, valid = rp.inverse_warp(image_r, depth, rel[:3, :3], rel[:3, 3], k)
-    kept = valid & ~rp.occlusion_mask(depth, rel[:3, :3], rel[:3, 3], k)
-    err = (warped - image_t).abs().mean(1, keepdim=True)[kept].mean()
-    before = (image_r - image_t).abs().mean(1, keepdim=True)[kept].mean()
-    assert kept.float().mean() > 0.5
-    assert err < 0.5 * before and err < 0.05, (err, before)
+
+    def error(rel: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+        r, t = torch.from_numpy(rel[:3, :3]), torch.from_numpy(rel[:3, 3])
+        warped, valid = rp.inverse_warp(image_r, depth, r, t, k)
+        kept = valid & ~rp.occlusion_mask(depth, r, t, k)
+        assert kept.float().mean() > 0.3
+        before = (image_r - image_t).abs().mean(1, keepdim=True)[kept].mean()
+        return (warped - image_t).abs().mean(1, keepdim=True)[kept].mean(), before
+
+    err, before = error(scene.relative_pose(target, reference))
+    wrong, _ = error(scene.relative_pose(reference, target))
+    assert err < 0.6 * before and err < 0.5 * wrong and err < 0.04, (err, before, wrong)
