@@ -235,7 +235,9 @@ def _divergence(ax: torch.Tensor, ay: torch.Tensor) -> torch.Tensor:
 
 def _norm(gx: torch.Tensor, gy: torch.Tensor) -> torch.Tensor:
     """``sqrt(gx² + gy²)`` with a zero subgradient at 0 (not NaN)."""
-    return torch.linalg.vector_norm(torch.stack((gx, gy)), dim=0)
+    sq = gx**2 + gy**2
+    nonzero = sq > 0
+    return torch.where(nonzero, sq, torch.ones_like(sq)).sqrt() * nonzero
 
 
 def _edge_weight(
@@ -258,13 +260,15 @@ def image_gradient_norm(image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor
     - ``(B, 1, H−1, W−1)`` from forward differences: where :func:`tv_loss` and
       :func:`diffusion_loss` take ``∇ξ``;
     - ``(B, 1, H−2, W−2)`` at the interior pixels from central differences
-      (:func:`kornia.filters.spatial_gradient`, ``mode='diff'``): where the Laplacian losses
-      take ``Δξ``, so that an edge between two pixels weighs the Laplacian of both.
+      ``(I[x+1] − I[x−1]) / 2``: where the Laplacian losses take ``Δξ``, so that an edge between
+      two pixels weighs the Laplacian of both. (kornia's ``spatial_gradient(mode='diff')`` gives
+      the same values, 15 times slower on 200 px frames.)
     """
     gx, gy = _forward_gradient(image)
     forward = _norm(gx[..., :-1, :], gy[..., :, :-1]).mean(1, keepdim=True)
-    central = kornia.filters.spatial_gradient(image, mode="diff")[..., 1:-1, 1:-1]
-    return forward, _norm(central[:, :, 0], central[:, :, 1]).mean(1, keepdim=True)
+    cx = (image[..., 1:-1, 2:] - image[..., 1:-1, :-2]) / 2
+    cy = (image[..., 2:, 1:-1] - image[..., :-2, 1:-1]) / 2
+    return forward, _norm(cx, cy).mean(1, keepdim=True)
 
 
 def _gradient_terms(xi: torch.Tensor, image: torch.Tensor, kappa, squared: bool):
@@ -390,8 +394,8 @@ def direct_warp(
     ``(u₀, v₀)`` its projected centre minus ``d/2``. It paints the reference pixels whose centres
     it covers (half-open squares, so the squares of a fronto-parallel plane tile the image with
     neither hole nor overlap; Algorithm 1 starts from ``round(u₀)`` and may paint one more
-    column); a z-buffer keeps the nearest. Vectorised: a loop over the at most
-    ``(⌈max d⌉ + 1)²`` offsets inside a square, none over pixels. Not differentiable.
+    column); a z-buffer keeps the nearest. Vectorised: a loop over the ``⌈max d⌉²`` offsets
+    inside a square, none over pixels. Not differentiable.
 
     ``d`` assumes square pixels (``fx = fy``, as stillbox-gen writes) and is clipped to
     ``max_square``. Pixels with a non-finite or non-positive depth, or behind the reference
@@ -409,27 +413,27 @@ def direct_warp(
     u0, v0 = u - d / 2, v - d / 2
     ok = torch.isfinite(u0) & torch.isfinite(v0) & torch.isfinite(z) & (depth[:, 0] > 0) & (z > 0)
     first_u, first_v = torch.ceil(u0), torch.ceil(v0)
-    n = int(torch.ceil(d[ok].max()).item()) + 1 if ok.any() else 0
-    source = torch.arange(h * w, device=depth.device).reshape(1, h, w).expand(b, h, w)
+    n = int(torch.ceil(torch.where(ok, d, 0).max()).item())  # [u₀, u₀ + d) holds ≤ ⌈d⌉ integers
+    dump = b * h * w  # an extra z-buffer cell for what is not painted (no boolean indexing)
     offset = (torch.arange(b, device=depth.device) * h * w).reshape(b, 1, 1)
-    flat, zs, src = [], [], []
+    targets = []
     for i in range(n):
         for j in range(n):
             uu, vv = first_u + j, first_v + i
             paint = ok & (uu < u0 + d) & (vv < v0 + d)
             paint &= (uu >= 0) & (uu <= w - 1) & (vv >= 0) & (vv <= h - 1)
             target = offset + vv.clamp(0, h - 1).long() * w + uu.clamp(0, w - 1).long()
-            flat.append(target[paint])
-            zs.append(z[paint])
-            src.append(source[paint])
-    flat, zs, src = torch.cat(flat), torch.cat(zs), torch.cat(src)
-    zbuf = torch.full((b * h * w,), float("inf"), dtype=depth.dtype, device=depth.device)
+            targets.append(torch.where(paint, target, dump).reshape(-1))
+    flat = torch.cat(targets)
+    zs = torch.where(ok, z, float("inf")).reshape(-1).repeat(n * n)
+    zbuf = torch.full((dump + 1,), float("inf"), dtype=depth.dtype, device=depth.device)
     zbuf = zbuf.scatter_reduce(0, flat, zs, "amin")
-    nearest = zs == zbuf[flat]
-    index = torch.full((b * h * w,), h * w, dtype=torch.int64, device=depth.device)
-    index = index.scatter_reduce(0, flat[nearest], src[nearest], "amin")
+    nearest = torch.where(zs == zbuf[flat], flat, dump)  # on ties, the smallest source wins
+    source = torch.arange(h * w, device=depth.device).repeat(b * n * n)
+    index = torch.full((dump + 1,), h * w, dtype=torch.int64, device=depth.device)
+    index = index.scatter_reduce(0, nearest, source, "amin")[:dump]
     index = torch.where(index == h * w, -1, index)
-    return zbuf.reshape(b, 1, h, w), index.reshape(b, 1, h, w)
+    return zbuf[:dump].reshape(b, 1, h, w), index.reshape(b, 1, h, w)
 
 
 @torch.no_grad()
@@ -440,7 +444,7 @@ def occlusion_mask(
     K: torch.Tensor,
     method: str = "warp_back",
     ratio: float = ODM_DEPTH_RATIO,
-    dilation: int = ODM_DILATION,
+    dilation: int | None = None,
 ) -> torch.Tensor:
     """Occlusion detection module (§4.5.6): target pixels not seen in the reference, to drop from
     the photometric loss. ``(B, 1, H, W)`` bool, True = occluded (or out of the reference view).
@@ -452,20 +456,25 @@ def occlusion_mask(
         ``"warp_back"``: the reference depth of :func:`direct_warp` warped back to the target the
         same way; occluded where the result is not within ``[θ/ratio, θ·ratio]``.
     ``dilation``: the occluded mask is dilated by this many pixels (a square of side
-    ``2·dilation + 1``), which also removes the sparse false negatives of a noisy depth.
+    ``2·dilation + 1``), which also removes the sparse false negatives of a noisy depth; by
+    default :data:`ODM_DILATION` for ``"warp_back"`` (Fig. 4.10) and 0 for ``"index"`` (whose
+    sparse false positives a dilation would spread).
     """
     b, _, h, w = depth.shape
     warped, index = direct_warp(depth, rotation, translation, K)
     if method == "index":
         offset = (torch.arange(b, device=depth.device) * h * w).reshape(b, 1, 1, 1)
-        seen = torch.zeros(b * h * w, dtype=torch.bool, device=depth.device)
-        seen[(index + offset)[index >= 0]] = True
-        occluded = ~seen.reshape(b, 1, h, w)
+        painted = torch.where(index >= 0, index + offset, b * h * w).reshape(-1)
+        seen = torch.zeros(b * h * w + 1, dtype=torch.bool, device=depth.device)
+        seen[painted] = True
+        occluded = ~seen[:-1].reshape(b, 1, h, w)
     elif method == "warp_back":
         back, _ = direct_warp(warped, *invert_pose(rotation, translation), K)
         occluded = ~((back >= depth / ratio) & (back <= depth * ratio))
     else:
         raise ValueError(f"unknown occlusion method {method!r}: 'index' or 'warp_back'")
+    if dilation is None:
+        dilation = ODM_DILATION if method == "warp_back" else 0
     if dilation > 0:
         size = 2 * dilation + 1
         occluded = F.max_pool2d(occluded.float(), size, stride=1, padding=dilation) > 0

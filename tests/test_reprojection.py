@@ -286,6 +286,8 @@ def test_kappa_per_sample_solves_independent_problems_in_one_batch():
         together = loss(xi, image, kappas)
         alone = torch.cat([loss(xi[i : i + 1], image[i : i + 1], kappas[i]) for i in range(3)])
         torch.testing.assert_close(together, alone, msg=name)
+        one_image = loss(xi, image[:1], kappas)  # broadcast against the batch of ξ
+        torch.testing.assert_close(one_image, loss(xi, image[:1].expand(3, -1, -1, -1), kappas))
 
 
 def test_robust_diffusion_one_step_by_hand():
@@ -311,15 +313,18 @@ def test_robust_gradient_diffusion_one_step_by_hand():
     assert rp.robust_gradient_diffusion_loss(xi, _flat_image(), 1.0).item() < 1.0
 
 
-def test_kornia_spatial_gradient_is_the_central_difference():
-    """The convention image_gradient_norm relies on: channel 0 is d/dx (x to the right),
-    (I[x+1] − I[x−1]) / 2 inside, replicated border."""
-    xs = torch.arange(6, dtype=DT)
-    ramp = (3 * xs**2).expand(1, 1, 4, 6)
-    g = kornia.filters.spatial_gradient(ramp, mode="diff")
-    torch.testing.assert_close(g[0, 0, 0, 1, 1:-1], 6 * xs[1:-1])  # d(3x²)/dx = 6x exactly
-    assert g[0, 0, 1].abs().max() == 0
-    assert g[0, 0, 0, 0, 0].item() == 3 * (1 - 0) / 2  # border: (I[1] − I[0]) / 2
+def test_image_gradient_norm_by_hand_and_as_kornia_computes_it():
+    """I = 3x² in channel 0, 4y in channel 1, 0 in channel 2: forward differences at (y, x) are
+    (3(2x + 1), 4), central ones at interior pixels (6x, 4); the norm is averaged over the 3
+    channels. The central ones are kornia's spatial_gradient(mode='diff') inside the border."""
+    ys, xs = torch.meshgrid(torch.arange(5, dtype=DT), torch.arange(6, dtype=DT), indexing="ij")
+    image = torch.stack((3 * xs**2, 4 * ys, 0 * xs))[None]
+    forward, central = rp.image_gradient_norm(image)
+    fx = 3 * (2 * xs[:-1, :-1] + 1)
+    torch.testing.assert_close(forward[0, 0], (fx + 4) / 3)
+    torch.testing.assert_close(central[0, 0], (6 * xs[1:-1, 1:-1] + 4) / 3)
+    k = kornia.filters.spatial_gradient(image, mode="diff")[..., 1:-1, 1:-1]
+    torch.testing.assert_close(central, k.norm(dim=2).mean(1, keepdim=True))
 
 
 # ---------------------------------------------------------------- direct warp and the ODM
