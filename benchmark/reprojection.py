@@ -22,6 +22,24 @@ Conventions (the dataset's, docs/FORMAT.md; the same as :mod:`benchmark.flow`):
 - Losses are returned per sample, ``(B,)``, so that a batch may hold independent problems (e.g.
   a grid of hyper-parameters); ``.mean()`` or ``.sum()`` them. Means over pixels replace the
   thesis' integrals ``∬_Ω dS``.
+
+Choices the thesis leaves open, and where this differs from the author's later code
+(ClementPinard/unsupervised-depthnet, ``loss_functions.py``, ``inverse_warp.py``; the thesis is
+followed where they differ):
+
+- Discretisation: ``∇ξ`` by forward differences (central ones cannot see a checkerboard), ``Δξ``
+  the 5-point Laplacian at interior pixels only (so a ramp has exactly zero Laplacian losses; the
+  thesis discusses the boundary terms in §4.4.6). ``‖∇I‖`` is the mean over channels of each
+  channel's gradient norm, as §4.4.9 says; the author's ``grad_diffusion_loss`` instead weighs
+  ``∂xx ξ`` and ``∂yy ξ`` separately (``(∂xx ξ)² + (∂yy ξ)²``, not the thesis' ``(Δξ)²``) by the
+  per-axis central difference of the channel-summed image.
+- Robust losses: the inner descent uses the integral (sum) form of the loss, so that γ = 0.1 is
+  a real diffusion step (on a mean, 10 steps of 0.1 would barely move a 200 px map). Robust
+  gradient diffusion diffuses ``∇ξ`` (see :func:`robust_gradient_diffusion_loss`).
+- SSIM pads with reflection (kornia); the author's pads with zeros (on images shifted by +1).
+- The inverse warp masks points behind the reference camera; the author's clamps their depth to
+  1e-3 m and keeps them.
+- The direct warp paints half-open squares (:func:`direct_warp`); Algorithm 1 rounds.
 """
 
 from __future__ import annotations
@@ -32,8 +50,7 @@ import kornia
 import torch
 import torch.nn.functional as F
 
-from .flow import _grid as pixel_grid
-from .flow import warp
+from .flow import pixel_grid, warp
 
 #: Weight α of DSSIM against L1 in the photometric loss (eq. 5.3).
 SSIM_WEIGHT = 0.15
