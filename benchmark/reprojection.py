@@ -19,6 +19,8 @@ Conventions (the dataset's, docs/FORMAT.md; the same as :mod:`benchmark.flow`):
   For two frames of a dataset scene, ``scene.relative_pose(target, reference)`` is ``[R | t]``.
   For a stabilised camera (``R = I``) that moves by ``T`` from target to reference (in target
   axes), ``t = −T``: the opposite sign of :mod:`benchmark.flow`'s displacement.
+- Smooth losses take the inverse depth ``ξ = 1/θ`` ``(B, 1, H, W)`` (1/m), the frame ``I`` it
+  belongs to (``(B, C, H, W)``, or batch 1 for all), and κ (a number, or one per sample ``(B,)``).
 - Losses are returned per sample, ``(B,)``, so that a batch may hold independent problems (e.g.
   a grid of hyper-parameters); ``.mean()`` or ``.sum()`` them. Means over pixels replace the
   thesis' integrals ``∬_Ω dS``.
@@ -168,7 +170,8 @@ def dssim_map(target: torch.Tensor, warped: torch.Tensor) -> torch.Tensor:
 
     SSIM is kornia's (:func:`kornia.metrics.ssim`): Gaussian window of :data:`SSIM_WINDOW` pixels,
     σ = 1.5, ``C1 = 0.01²``, ``C2 = 0.03²`` for images in ``[0, 1]``, reflect padding at the
-    border (the author's code pads with zeros).
+    border (the author's code pads with zeros). A pixel's window may reach pixels that a mask
+    drops (as in the author's code).
     """
     ssim = kornia.metrics.ssim(target, warped, SSIM_WINDOW, max_val=1.0)
     return ((1 - ssim) / 2).clamp(0, 1).mean(1, keepdim=True)
@@ -288,38 +291,46 @@ def image_gradient_norm(image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor
     return forward, _norm(cx, cy).mean(1, keepdim=True)
 
 
-def _gradient_terms(xi: torch.Tensor, image: torch.Tensor, kappa, squared: bool):
+def _gradient_terms(
+    xi: torch.Tensor, image: torch.Tensor, kappa: float | torch.Tensor, squared: bool
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """(weight, ∂x ξ, ∂y ξ) on the ``(H−1, W−1)`` grid of forward differences."""
     gx, gy = _forward_gradient(xi)
     w = _edge_weight(image_gradient_norm(image)[0], kappa, squared)
     return w, gx[..., :-1, :], gy[..., :, :-1]
 
 
-def _laplacian_terms(xi: torch.Tensor, image: torch.Tensor, kappa, squared: bool):
+def _laplacian_terms(
+    xi: torch.Tensor, image: torch.Tensor, kappa: float | torch.Tensor, squared: bool
+) -> tuple[torch.Tensor, torch.Tensor]:
     """(weight, Δξ) at the interior pixels."""
     lap = _divergence(*_forward_gradient(xi))
     return _edge_weight(image_gradient_norm(image)[1], kappa, squared), lap
 
 
-def diffusion_loss(xi: torch.Tensor, image: torch.Tensor, kappa: float | torch.Tensor):
+def diffusion_loss(
+    xi: torch.Tensor, image: torch.Tensor, kappa: float | torch.Tensor
+) -> torch.Tensor:
     """Eq. 4.18: mean of ``exp(−(‖∇I‖/κ)²)·‖∇ξ‖²`` (``ξ`` per pixel, forward differences)."""
     w, gx, gy = _gradient_terms(xi, image, kappa, squared=True)
     return (w * (gx**2 + gy**2)).flatten(1).mean(1)
 
 
-def tv_loss(xi: torch.Tensor, image: torch.Tensor, kappa: float | torch.Tensor):
+def tv_loss(xi: torch.Tensor, image: torch.Tensor, kappa: float | torch.Tensor) -> torch.Tensor:
     """Eq. 4.19: mean of ``exp(−‖∇I‖/κ)·‖∇ξ‖`` (isotropic total variation)."""
     w, gx, gy = _gradient_terms(xi, image, kappa, squared=False)
     return (w * _norm(gx, gy)).flatten(1).mean(1)
 
 
-def gradient_diffusion_loss(xi: torch.Tensor, image: torch.Tensor, kappa: float | torch.Tensor):
+def gradient_diffusion_loss(
+    xi: torch.Tensor, image: torch.Tensor, kappa: float | torch.Tensor
+) -> torch.Tensor:
     """Eq. 4.20: mean over interior pixels of ``exp(−(‖∇I‖/κ)²)·(Δξ)²`` (5-point Laplacian)."""
     w, lap = _laplacian_terms(xi, image, kappa, squared=True)
     return (w * lap**2).flatten(1).mean(1)
 
 
-def tvv_loss(xi: torch.Tensor, image: torch.Tensor, kappa: float | torch.Tensor):
+def tvv_loss(xi: torch.Tensor, image: torch.Tensor, kappa: float | torch.Tensor) -> torch.Tensor:
     """Eq. 4.21: mean over interior pixels of ``exp(−‖∇I‖/κ)·|Δξ|``."""
     w, lap = _laplacian_terms(xi, image, kappa, squared=False)
     return (w * lap.abs()).flatten(1).mean(1)
