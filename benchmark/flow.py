@@ -54,7 +54,7 @@ def _camera(K: torch.Tensor, t: torch.Tensor, batch: int, like: torch.Tensor):
     return tuple(u.reshape(batch, 1, 1) for u in v)
 
 
-def _grid(height: int, width: int, like: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def pixel_grid(height: int, width: int, like: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Pixel-centre coordinates ``(xs, ys)``, each ``(H, W)``."""
     ys = torch.arange(height, dtype=like.dtype, device=like.device)
     xs = torch.arange(width, dtype=like.dtype, device=like.device)
@@ -75,7 +75,7 @@ def epipolar_direction(
         torch.as_tensor(translation).reshape(-1, 3).shape[0],
     )
     fx, fy, cx, cy, tx, ty, tz = _camera(K, translation, batch, like)
-    xs, ys = _grid(height, width, like)
+    xs, ys = pixel_grid(height, width, like)
     return torch.stack((fx * tx - tz * (xs - cx), fy * ty - tz * (ys - cy)), dim=1)
 
 
@@ -99,7 +99,7 @@ def flow_from_depth(
     depth, single = _batched(depth, 3)
     b, h, w = depth.shape
     fx, fy, cx, cy, tx, ty, tz = _camera(K, translation, b, depth)
-    xs, ys = _grid(h, w, depth)
+    xs, ys = pixel_grid(h, w, depth)
     z_b = depth - tz
     x_b = (xs - cx) * depth / fx - tx  # frame-b camera coordinates (same orientation)
     y_b = (ys - cy) * depth / fy - ty
@@ -138,7 +138,7 @@ def depth_from_flow(
     flow, single = _batched(flow, 4)
     b, _, h, w = flow.shape
     fx, fy, cx, cy, tx, ty, tz = _camera(K, translation, b, flow)
-    xs, ys = _grid(h, w, flow)
+    xs, ys = pixel_grid(h, w, flow)
     a = torch.stack((fx * tx - tz * (xs - cx), fy * ty - tz * (ys - cy)), dim=1)
     den = -(a * flow).sum(1)
     den = torch.where(den == 0, torch.zeros_like(den), den)  # −0 -> +0: no parallax is +inf
@@ -172,7 +172,7 @@ def warp(image_b: torch.Tensor, flow: torch.Tensor) -> tuple[torch.Tensor, torch
     mask of pixels whose flow is finite and lands inside frame b.
     """
     b, _, h, w = flow.shape
-    xs, ys = _grid(h, w, flow)
+    xs, ys = pixel_grid(h, w, flow)
     x = xs + flow[:, 0]
     y = ys + flow[:, 1]
     inside = torch.isfinite(x) & torch.isfinite(y)

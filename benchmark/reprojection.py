@@ -1,0 +1,509 @@
+"""Reprojection: warps, photometric and smooth losses, occlusion detection (thesis chapter 4).
+
+The pieces that learn depth from video without ground truth: a depth map of a *target* frame and
+the relative pose of a *reference* frame reproject the reference onto the target (inverse warp,
+eq. 4.2); the photometric loss compares the two (eq. 5.3, §4.7.2); smooth losses regularise the
+inverse depth (eqs. 4.18-4.21, §4.4.5); the occlusion detection module (ODM, §4.5.6, Algorithm 1)
+finds the target pixels hidden in the reference, to drop from the photometric loss.
+
+Conventions (the dataset's, docs/FORMAT.md; the same as :mod:`benchmark.flow`):
+
+- Every image, depth map, loss map and mask is batched ``(B, C, H, W)``, ``C = 1`` for depth,
+  inverse depth ``ξ = 1/θ``, masks and per-pixel losses. Images are RGB in ``[0, 1]``.
+- OpenCV camera axes: x right, y down, z forward. Pixel coordinates ``(x, y)``, the centre of the
+  top-left pixel at ``(0, 0)``; ``K = [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]``, ``(B, 3, 3)`` or
+  ``(3, 3)``, pixels.
+- Depth ``θ`` is planar depth along the optical axis, metres.
+- Pose: ``rotation`` ``R`` and ``translation`` ``t`` map *target* camera coordinates to *reference*
+  camera coordinates, ``X_ref = R·X_tgt + t`` (metres; ``(B, 3, 3)`` / ``(B, 3)`` or unbatched).
+  For two frames of a dataset scene, ``scene.relative_pose(target, reference)`` is ``[R | t]``.
+  For a stabilised camera (``R = I``) that moves by ``T`` from target to reference (in target
+  axes), ``t = −T``: the opposite sign of :mod:`benchmark.flow`'s displacement.
+- Smooth losses take the inverse depth ``ξ = 1/θ`` ``(B, 1, H, W)`` (1/m), the frame ``I`` it
+  belongs to (``(B, C, H, W)``, or batch 1 for all), and κ (a number, or one per sample ``(B,)``).
+- Losses are returned per sample, ``(B,)``, so that a batch may hold independent problems (e.g.
+  a grid of hyper-parameters); ``.mean()`` or ``.sum()`` them. Means over pixels replace the
+  thesis' integrals ``∬_Ω dS``.
+
+Choices the thesis leaves open, and where this differs from the author's later code
+(ClementPinard/unsupervised-depthnet, ``loss_functions.py``, ``inverse_warp.py``; the thesis is
+followed where they differ):
+
+- Discretisation: ``∇ξ`` by forward differences (central ones cannot see a checkerboard), ``Δξ``
+  the 5-point Laplacian at interior pixels only (so a ramp has exactly zero Laplacian losses; the
+  thesis discusses the boundary terms in §4.4.6). ``‖∇I‖`` is the mean over channels of each
+  channel's gradient norm, as §4.4.9 says; the author's ``grad_diffusion_loss`` instead weighs
+  ``∂xx ξ`` and ``∂yy ξ`` separately (``(∂xx ξ)² + (∂yy ξ)²``, not the thesis' ``(Δξ)²``) by the
+  per-axis central difference of the channel-summed image.
+- Robust losses: the inner descent uses the integral (sum) form of the loss, so that γ = 0.1 is
+  a real diffusion step (on a mean, 10 steps of 0.1 would barely move a 200 px map). Robust
+  gradient diffusion diffuses ``∇ξ`` (see :func:`robust_gradient_diffusion_loss`).
+- SSIM pads with reflection (kornia); the author's pads with zeros (on images shifted by +1).
+- The inverse warp masks points behind the reference camera; the author's clamps their depth to
+  1e-3 m and keeps them.
+- The direct warp paints half-open squares (:func:`direct_warp`); Algorithm 1 rounds.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+
+import kornia
+import torch
+import torch.nn.functional as F
+
+from .flow import pixel_grid, warp
+
+#: Weight α of DSSIM against L1 in the photometric loss (eq. 5.3).
+SSIM_WEIGHT = 0.15
+#: Side of SSIM's Gaussian window, pixels (σ = 1.5, kornia's); the author's code uses 3 too.
+SSIM_WINDOW = 3
+#: Robust smooth losses (§4.6.2): gradient-descent steps on the detached clone, and their step γ.
+ROBUST_STEPS = 10
+ROBUST_STEP = 0.1
+#: ODM "warp back": a target pixel is seen in the reference when its depth warped there and back
+#: is within this ratio of its own depth (the thesis' α > 1; it gives no value: our choice).
+ODM_DEPTH_RATIO = 1.1
+#: ODM: occluded pixels are dilated by this many pixels (Fig. 4.10: "erosion of valid pixels by 2").
+ODM_DILATION = 2
+#: Direct warp: largest side of a projected square, pixels (squares of points very close to the
+#: reference camera are clipped to it, which bounds the work).
+MAX_SQUARE = 16.0
+
+
+# ---------------------------------------------------------------- geometry
+
+
+def _pose(
+    rotation: torch.Tensor | None, translation: torch.Tensor, batch: int, like: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(R (B, 3, 3), t (B, 3, 1))`` in ``like``'s dtype and device; ``None`` is the identity."""
+    t = torch.as_tensor(translation).to(like).reshape(-1, 3, 1).expand(batch, 3, 1)
+    if rotation is None:
+        rotation = torch.eye(3)
+    r = torch.as_tensor(rotation).to(like).reshape(-1, 3, 3).expand(batch, 3, 3)
+    return r, t
+
+
+def _intrinsics(K: torch.Tensor, batch: int, like: torch.Tensor) -> torch.Tensor:
+    return torch.as_tensor(K).to(like).reshape(-1, 3, 3).expand(batch, 3, 3)
+
+
+def invert_pose(
+    rotation: torch.Tensor | None, translation: torch.Tensor
+) -> tuple[torch.Tensor | None, torch.Tensor]:
+    """The reference → target pose of a target → reference one: ``(Rᵀ, −Rᵀ·t)``."""
+    if rotation is None:
+        return None, -torch.as_tensor(translation)
+    rt = torch.as_tensor(rotation).transpose(-1, -2)
+    return rt, -(rt @ torch.as_tensor(translation).unsqueeze(-1)).squeeze(-1)
+
+
+def reference_points(
+    depth: torch.Tensor, rotation: torch.Tensor | None, translation: torch.Tensor, K: torch.Tensor
+) -> torch.Tensor:
+    """The target's pixels back-projected with ``depth`` and moved to reference camera coordinates.
+
+    ``depth``: ``(B, 1, H, W)`` metres. Returns ``(B, 3, H, W)`` points ``R·θ·K⁻¹(x, y, 1) + t``,
+    metres, in the reference camera's OpenCV axes.
+    """
+    b, _, h, w = depth.shape
+    r, t = _pose(rotation, translation, b, depth)
+    xs, ys = pixel_grid(h, w, depth)
+    pix = torch.stack((xs, ys, torch.ones_like(xs))).reshape(1, 3, h * w)
+    rays = torch.linalg.solve(_intrinsics(K, b, depth), pix.expand(b, 3, h * w))
+    return (r @ (rays * depth.reshape(b, 1, h * w)) + t).reshape(b, 3, h, w)
+
+
+def project(points: torch.Tensor, K: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Pixel coordinates ``(B, 2, H, W)`` and depth ``z`` ``(B, 1, H, W)`` of camera-frame points.
+
+    Division by ``z`` is guarded (``z`` clamped to 1e-6 m) so that points behind the camera give
+    finite coordinates and gradients; mask them with ``z > 0``.
+    """
+    b, _, h, w = points.shape
+    hom = (_intrinsics(K, b, points) @ points.reshape(b, 3, h * w)).reshape(b, 3, h, w)
+    z = hom[:, 2:]
+    return hom[:, :2] / z.clamp(min=1e-6), z
+
+
+def inverse_warp(
+    reference: torch.Tensor,
+    depth: torch.Tensor,
+    rotation: torch.Tensor | None,
+    translation: torch.Tensor,
+    K: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The reference frame resampled on the target's grid with the target's depth (eq. 4.2).
+
+    ``out(p) = I_ref(Π(K·(R·θ(p)·K⁻¹p + t)))``, bilinear at pixel-centre coordinates (sampling
+    by :func:`benchmark.flow.warp`), differentiable with respect to ``reference``, ``depth`` and
+    the pose.
+
+    Args:
+        reference: ``(B, C, H, W)`` reference frame.
+        depth: ``(B, 1, H, W)`` target depth, metres.
+        rotation, translation: target → reference pose (module doc); ``rotation`` may be None.
+        K: intrinsics, pixels (the same camera for both frames).
+
+    Returns:
+        The warped frame ``(B, C, H, W)`` and a ``(B, 1, H, W)`` bool mask of the pixels whose
+        point is in front of the reference camera and projects inside it (within the pixel
+        centres ``[0, W − 1] × [0, H − 1]``, so all four bilinear neighbours exist).
+    """
+    coords, z = project(reference_points(depth, rotation, translation, K), K)
+    xs, ys = pixel_grid(depth.shape[2], depth.shape[3], depth)
+    warped, inside = warp(reference, coords - torch.stack((xs, ys)))
+    return warped, inside.unsqueeze(1) & (z > 0) & (depth > 0)
+
+
+# ---------------------------------------------------------------- photometric losses
+
+
+def l1_map(target: torch.Tensor, warped: torch.Tensor) -> torch.Tensor:
+    """``|I_t − Ĩ|`` averaged over channels, ``(B, 1, H, W)``."""
+    return (target - warped).abs().mean(1, keepdim=True)
+
+
+def dssim_map(target: torch.Tensor, warped: torch.Tensor) -> torch.Tensor:
+    """``(1 − SSIM) / 2`` clipped to ``[0, 1]``, averaged over channels, ``(B, 1, H, W)``.
+
+    SSIM is kornia's (:func:`kornia.metrics.ssim`): Gaussian window of :data:`SSIM_WINDOW` pixels,
+    σ = 1.5, ``C1 = 0.01²``, ``C2 = 0.03²`` for images in ``[0, 1]``, reflect padding at the
+    border (the author's code pads with zeros). A pixel's window may reach pixels that a mask
+    drops (as in the author's code).
+    """
+    ssim = kornia.metrics.ssim(target, warped, SSIM_WINDOW, max_val=1.0)
+    return ((1 - ssim) / 2).clamp(0, 1).mean(1, keepdim=True)
+
+
+def photometric_map(
+    target: torch.Tensor, warped: torch.Tensor, alpha: float = SSIM_WEIGHT
+) -> torch.Tensor:
+    """Per-pixel photometric error ``(1 − α)·|I_t − Ĩ| + α·(1 − SSIM)/2`` (eq. 5.3), (B, 1, H, W).
+
+    ``alpha = 0`` is the plain L1 distance of the thesis' toy problems (§4.7.3).
+    """
+    out = l1_map(target, warped)
+    if alpha:
+        out = (1 - alpha) * out + alpha * dssim_map(target, warped)
+    return out
+
+
+def masked_mean(values: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+    """Mean of ``(B, 1, H, W)`` values over the pixels where ``mask`` is True, per sample ``(B,)``.
+
+    A sample without any kept pixel gives 0 (and no gradient), not NaN.
+    """
+    if mask is None:
+        return values.flatten(1).mean(1)
+    mask = mask.expand_as(values)
+    total = torch.where(mask, values, torch.zeros_like(values)).flatten(1).sum(1)
+    return total / mask.flatten(1).sum(1).clamp(min=1)
+
+
+def photometric_loss(
+    target: torch.Tensor,
+    warped: Sequence[torch.Tensor],
+    masks: Sequence[torch.Tensor | None],
+    alpha: float = SSIM_WEIGHT,
+    minimum: bool = False,
+) -> torch.Tensor:
+    """Photometric loss of a target against its warped references, per sample ``(B,)``.
+
+    Args:
+        target: ``(B, C, H, W)`` target frame ``I_t``.
+        warped: the references warped to the target, each ``(B, C, H, W)``.
+        masks: for each reference, a ``(B, 1, H, W)`` bool mask of the pixels to keep (the
+            inverse warp's valid mask, minus the ODM's occluded pixels), or None for all.
+        alpha: DSSIM weight (eq. 5.3).
+        minimum: False: eq. 5.3 / 4.23, the sum over references of each one's mean error over its
+            kept pixels. True: minimal loss sampling (§4.7.2), the mean over pixels of the
+            smallest error among the references that keep the pixel; a pixel no reference keeps
+            is left out.
+    """
+    if len(warped) != len(masks) or not warped:
+        raise ValueError("photometric_loss needs one mask (or None) per warped reference")
+    maps = [photometric_map(target, w, alpha) for w in warped]
+    full = [
+        torch.ones_like(m, dtype=torch.bool) if k is None else k
+        for m, k in zip(maps, masks, strict=True)
+    ]
+    if not minimum:
+        return sum(masked_mean(m, k) for m, k in zip(maps, full, strict=True))
+    inf = torch.tensor(float("inf"), dtype=maps[0].dtype, device=maps[0].device)
+    stacked = torch.cat([torch.where(k, m, inf) for m, k in zip(maps, full, strict=True)], 1)
+    best = stacked.min(1, keepdim=True).values
+    kept = torch.isfinite(best)
+    return masked_mean(torch.where(kept, best, torch.zeros_like(best)), kept)
+
+
+# ---------------------------------------------------------------- smooth losses
+
+
+def _forward_gradient(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Forward differences ``(x[:, :, i, j+1] − x[i, j], x[i+1, j] − x[i, j])``, ``(B, C, H, W−1)``
+    and ``(B, C, H−1, W)``, per pixel (units of ``x`` per pixel)."""
+    return x[..., :, 1:] - x[..., :, :-1], x[..., 1:, :] - x[..., :-1, :]
+
+
+def _divergence(ax: torch.Tensor, ay: torch.Tensor) -> torch.Tensor:
+    """Backward-difference divergence of a field of :func:`_forward_gradient`'s shapes, at the
+    interior pixels ``(B, C, H−2, W−2)``; ``div(grad ξ)`` is the 5-point Laplacian there."""
+    return (ax[..., 1:-1, 1:] - ax[..., 1:-1, :-1]) + (ay[..., 1:, 1:-1] - ay[..., :-1, 1:-1])
+
+
+def _norm(gx: torch.Tensor, gy: torch.Tensor) -> torch.Tensor:
+    """``sqrt(gx² + gy²)`` with a zero subgradient at 0 (not NaN)."""
+    sq = gx**2 + gy**2
+    nonzero = sq > 0
+    return torch.where(nonzero, sq, torch.ones_like(sq)).sqrt() * nonzero
+
+
+def _edge_weight(
+    grad_norm: torch.Tensor, kappa: float | torch.Tensor, squared: bool
+) -> torch.Tensor:
+    """``exp(−(‖∇I‖/κ)²)`` (``squared``) or ``exp(−‖∇I‖/κ)``; κ a number or one per sample ``(B,)``.
+
+    ``κ = 0`` gives weight 0 (no smoothing, as the thesis notes), ``κ = inf`` weight 1 (plain loss).
+    """
+    k = torch.as_tensor(kappa, dtype=grad_norm.dtype, device=grad_norm.device).reshape(-1, 1, 1, 1)
+    ratio = grad_norm / k
+    w = torch.exp(-(ratio**2 if squared else ratio))
+    return torch.where(k > 0, w, torch.zeros_like(w))
+
+
+def image_gradient_norm(image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``‖∇I‖`` of a ``(B, C, H, W)`` image, the mean over channels of each channel's gradient norm
+    (§4.4.9), at two sets of points (per pixel, images in ``[0, 1]``):
+
+    - ``(B, 1, H−1, W−1)`` from forward differences: where :func:`tv_loss` and
+      :func:`diffusion_loss` take ``∇ξ``;
+    - ``(B, 1, H−2, W−2)`` at the interior pixels from central differences
+      ``(I[x+1] − I[x−1]) / 2``: where the Laplacian losses take ``Δξ``, so that an edge between
+      two pixels weighs the Laplacian of both. (kornia's ``spatial_gradient(mode='diff')`` gives
+      the same values, 15 times slower on 200 px frames.)
+    """
+    gx, gy = _forward_gradient(image)
+    forward = _norm(gx[..., :-1, :], gy[..., :, :-1]).mean(1, keepdim=True)
+    cx = (image[..., 1:-1, 2:] - image[..., 1:-1, :-2]) / 2
+    cy = (image[..., 2:, 1:-1] - image[..., :-2, 1:-1]) / 2
+    return forward, _norm(cx, cy).mean(1, keepdim=True)
+
+
+def _gradient_terms(
+    xi: torch.Tensor, image: torch.Tensor, kappa: float | torch.Tensor, squared: bool
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(weight, ∂x ξ, ∂y ξ) on the ``(H−1, W−1)`` grid of forward differences."""
+    gx, gy = _forward_gradient(xi)
+    w = _edge_weight(image_gradient_norm(image)[0], kappa, squared)
+    return w, gx[..., :-1, :], gy[..., :, :-1]
+
+
+def _laplacian_terms(
+    xi: torch.Tensor, image: torch.Tensor, kappa: float | torch.Tensor, squared: bool
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """(weight, Δξ) at the interior pixels."""
+    lap = _divergence(*_forward_gradient(xi))
+    return _edge_weight(image_gradient_norm(image)[1], kappa, squared), lap
+
+
+def diffusion_loss(
+    xi: torch.Tensor, image: torch.Tensor, kappa: float | torch.Tensor
+) -> torch.Tensor:
+    """Eq. 4.18: mean of ``exp(−(‖∇I‖/κ)²)·‖∇ξ‖²`` (``ξ`` per pixel, forward differences)."""
+    w, gx, gy = _gradient_terms(xi, image, kappa, squared=True)
+    return (w * (gx**2 + gy**2)).flatten(1).mean(1)
+
+
+def tv_loss(xi: torch.Tensor, image: torch.Tensor, kappa: float | torch.Tensor) -> torch.Tensor:
+    """Eq. 4.19: mean of ``exp(−‖∇I‖/κ)·‖∇ξ‖`` (isotropic total variation)."""
+    w, gx, gy = _gradient_terms(xi, image, kappa, squared=False)
+    return (w * _norm(gx, gy)).flatten(1).mean(1)
+
+
+def gradient_diffusion_loss(
+    xi: torch.Tensor, image: torch.Tensor, kappa: float | torch.Tensor
+) -> torch.Tensor:
+    """Eq. 4.20: mean over interior pixels of ``exp(−(‖∇I‖/κ)²)·(Δξ)²`` (5-point Laplacian)."""
+    w, lap = _laplacian_terms(xi, image, kappa, squared=True)
+    return (w * lap**2).flatten(1).mean(1)
+
+
+def tvv_loss(xi: torch.Tensor, image: torch.Tensor, kappa: float | torch.Tensor) -> torch.Tensor:
+    """Eq. 4.21: mean over interior pixels of ``exp(−‖∇I‖/κ)·|Δξ|``."""
+    w, lap = _laplacian_terms(xi, image, kappa, squared=False)
+    return (w * lap.abs()).flatten(1).mean(1)
+
+
+def _descend(
+    energy: Callable[..., torch.Tensor], xs: tuple[torch.Tensor, ...], steps: int, step: float
+) -> tuple[torch.Tensor, ...]:
+    """``steps`` gradient-descent steps ``x ← x − γ·∇E(x)`` on detached copies of ``xs``."""
+    xs = tuple(x.detach() for x in xs)
+    with torch.enable_grad():
+        for _ in range(steps):
+            xs = tuple(x.requires_grad_(True) for x in xs)
+            grads = torch.autograd.grad(energy(*xs), xs)
+            xs = tuple((x - step * g).detach() for x, g in zip(xs, grads, strict=True))
+    return xs
+
+
+def robust_diffusion_loss(
+    xi: torch.Tensor,
+    image: torch.Tensor,
+    kappa: float | torch.Tensor,
+    steps: int = ROBUST_STEPS,
+    step: float = ROBUST_STEP,
+) -> torch.Tensor:
+    """Robust diffusion (§4.4.5, §4.6.2): MSE between ``ξ`` and a detached clone of it diffused
+    by ``steps`` gradient steps ``γ`` on eq. 4.18 in its integral (sum) form, whose gradient is
+    the explicit anisotropic diffusion ``ξ ← ξ + 2γ·div(g∇ξ)`` (stable for γ ≤ 1/8)."""
+    w = _gradient_terms(xi, image, kappa, squared=True)[0].detach()
+
+    def energy(x: torch.Tensor) -> torch.Tensor:
+        gx, gy = _forward_gradient(x)
+        return (w * (gx[..., :-1, :] ** 2 + gy[..., :, :-1] ** 2)).sum()
+
+    (smooth,) = _descend(energy, (xi,), steps, step)
+    return ((xi - smooth) ** 2).flatten(1).mean(1)
+
+
+def robust_gradient_diffusion_loss(
+    xi: torch.Tensor,
+    image: torch.Tensor,
+    kappa: float | torch.Tensor,
+    steps: int = ROBUST_STEPS,
+    step: float = ROBUST_STEP,
+) -> torch.Tensor:
+    """Robust gradient diffusion: MSE between ``∇ξ`` and a detached clone of it diffused by
+    ``steps`` gradient steps ``γ`` on eq. 4.20 as a function of the field ``A = ∇ξ``,
+    ``Σ g·(div A)²`` (the thesis writes it ``L_gdiff(∇ξ)``; its gradient is ``−2∇(g·div A)``,
+    a diffusion of ``A``, eq. 4.16, stable for γ ≤ 1/8; the same descent on ``ξ`` would be
+    biharmonic, unstable at γ = 0.1). The MSE is over every forward difference of both
+    components."""
+    w = _laplacian_terms(xi, image, kappa, squared=True)[0].detach()
+
+    def energy(ax: torch.Tensor, ay: torch.Tensor) -> torch.Tensor:
+        return (w * _divergence(ax, ay) ** 2).sum()
+
+    gx, gy = _forward_gradient(xi)
+    sx, sy = _descend(energy, (gx, gy), steps, step)
+    err = torch.cat((((gx - sx) ** 2).flatten(1), ((gy - sy) ** 2).flatten(1)), 1)
+    return err.mean(1)
+
+
+#: The six smooth losses of Table 4.1, ``name: loss(ξ, image, κ) -> (B,)``.
+SMOOTH_LOSSES: dict[str, Callable[..., torch.Tensor]] = {
+    "tv": tv_loss,
+    "tvv": tvv_loss,
+    "diffusion": diffusion_loss,
+    "gradient_diffusion": gradient_diffusion_loss,
+    "robust_diffusion": robust_diffusion_loss,
+    "robust_gradient_diffusion": robust_gradient_diffusion_loss,
+}
+
+
+# ---------------------------------------------------------------- direct warp and occlusions
+
+
+@torch.no_grad()
+def direct_warp(
+    depth: torch.Tensor,
+    rotation: torch.Tensor | None,
+    translation: torch.Tensor,
+    K: torch.Tensor,
+    max_square: float = MAX_SQUARE,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Depth of the target painted into the reference frame as a square cloud (§4.5.6, Alg. 1).
+
+    Each target pixel ``p`` is a square facing the reference camera, one target pixel wide: at
+    reference depth ``Z`` it covers ``[u₀, u₀ + d) × [v₀, v₀ + d)`` with ``d = θ(p)/Z`` and
+    ``(u₀, v₀)`` its projected centre minus ``d/2``. It paints the reference pixels whose centres
+    it covers (half-open squares, so the squares of a fronto-parallel plane tile the image with
+    neither hole nor overlap; Algorithm 1 starts from ``round(u₀)`` and may paint one more
+    column); a z-buffer keeps the nearest. Vectorised: a loop over the ``⌈max d⌉²`` offsets
+    inside a square, none over pixels. Not differentiable.
+
+    ``d`` assumes square pixels (``fx = fy``, as stillbox-gen writes) and is clipped to
+    ``max_square``. Pixels with a non-finite or non-positive depth, or behind the reference
+    camera, paint nothing.
+
+    Returns:
+        ``(B, 1, H, W)`` reference depth, metres, ``inf`` where nothing was painted, and the
+        ``(B, 1, H, W)`` int64 index map ``Id``: the flat index ``y·W + x`` of the target pixel
+        painted there (the smallest on ties), −1 where none.
+    """
+    b, _, h, w = depth.shape
+    coords, z = project(reference_points(depth, rotation, translation, K), K)
+    u, v, z = coords[:, 0], coords[:, 1], z[:, 0]
+    d = (depth[:, 0] / z).clamp(max=max_square)
+    u0, v0 = u - d / 2, v - d / 2
+    ok = torch.isfinite(u0) & torch.isfinite(v0) & torch.isfinite(z) & (depth[:, 0] > 0) & (z > 0)
+    first_u, first_v = torch.ceil(u0), torch.ceil(v0)
+    n = int(torch.ceil(torch.where(ok, d, 0).max()).item())  # [u₀, u₀ + d) holds ≤ ⌈d⌉ integers
+    dump = b * h * w  # an extra z-buffer cell for what is not painted (no boolean indexing)
+    offset = (torch.arange(b, device=depth.device) * h * w).reshape(b, 1, 1)
+    targets = []
+    for i in range(n):
+        for j in range(n):
+            uu, vv = first_u + j, first_v + i
+            paint = ok & (uu < u0 + d) & (vv < v0 + d)
+            paint &= (uu >= 0) & (uu <= w - 1) & (vv >= 0) & (vv <= h - 1)
+            target = offset + vv.clamp(0, h - 1).long() * w + uu.clamp(0, w - 1).long()
+            targets.append(torch.where(paint, target, dump).reshape(-1))
+    flat = torch.cat(targets)
+    zs = torch.where(ok, z, float("inf")).reshape(-1).repeat(n * n)
+    zbuf = torch.full((dump + 1,), float("inf"), dtype=depth.dtype, device=depth.device)
+    zbuf = zbuf.scatter_reduce(0, flat, zs, "amin")
+    nearest = torch.where(zs == zbuf[flat], flat, dump)  # on ties, the smallest source wins
+    source = torch.arange(h * w, device=depth.device).repeat(b * n * n)
+    index = torch.full((dump + 1,), h * w, dtype=torch.int64, device=depth.device)
+    index = index.scatter_reduce(0, nearest, source, "amin")[:dump]
+    index = torch.where(index == h * w, -1, index)
+    return zbuf[:dump].reshape(b, 1, h, w), index.reshape(b, 1, h, w)
+
+
+@torch.no_grad()
+def occlusion_mask(
+    depth: torch.Tensor,
+    rotation: torch.Tensor | None,
+    translation: torch.Tensor,
+    K: torch.Tensor,
+    method: str = "warp_back",
+    ratio: float = ODM_DEPTH_RATIO,
+    dilation: int | None = None,
+) -> torch.Tensor:
+    """Occlusion detection module (§4.5.6): target pixels not seen in the reference, to drop from
+    the photometric loss. ``(B, 1, H, W)`` bool, True = occluded (or out of the reference view).
+
+    ``method``:
+        ``"index"``: "index back" (eq. 4.26), occluded where no reference pixel's index map
+        :func:`direct_warp` points back to the pixel. Sparse false positives where squares
+        overlap (oblique surfaces, backward motion).
+        ``"warp_back"``: the reference depth of :func:`direct_warp` warped back to the target the
+        same way; occluded where the result is not within ``[θ/ratio, θ·ratio]``.
+    ``dilation``: the occluded mask is dilated by this many pixels (a square of side
+    ``2·dilation + 1``), which also removes the sparse false negatives of a noisy depth; by
+    default :data:`ODM_DILATION` for ``"warp_back"`` (Fig. 4.10) and 0 for ``"index"`` (whose
+    sparse false positives a dilation would spread).
+    """
+    b, _, h, w = depth.shape
+    warped, index = direct_warp(depth, rotation, translation, K)
+    if method == "index":
+        offset = (torch.arange(b, device=depth.device) * h * w).reshape(b, 1, 1, 1)
+        painted = torch.where(index >= 0, index + offset, b * h * w).reshape(-1)
+        seen = torch.zeros(b * h * w + 1, dtype=torch.bool, device=depth.device)
+        seen[painted] = True
+        occluded = ~seen[:-1].reshape(b, 1, h, w)
+    elif method == "warp_back":
+        back, _ = direct_warp(warped, *invert_pose(rotation, translation), K)
+        occluded = ~((back >= depth / ratio) & (back <= depth * ratio))
+    else:
+        raise ValueError(f"unknown occlusion method {method!r}: 'index' or 'warp_back'")
+    if dilation is None:
+        dilation = ODM_DILATION if method == "warp_back" else 0
+    if dilation > 0:
+        size = 2 * dilation + 1
+        occluded = F.max_pool2d(occluded.float(), size, stride=1, padding=dilation) > 0
+    return occluded

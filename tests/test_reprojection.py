@@ -1,0 +1,435 @@
+"""benchmark.reprojection: warps, photometric and smooth losses, occlusion detection.
+
+Expected values are computed by hand from the geometry (an analytic scene of textured planes,
+ray-cast here), not by re-running the module's formulas.
+"""
+
+from __future__ import annotations
+
+import math
+
+import kornia
+import numpy as np
+import pytest
+import torch
+
+from benchmark import reprojection as rp
+from stillbox_gen.camera import rotation_vector_to_matrix
+
+DT = torch.float64
+SIZE = 64
+FOCAL = SIZE / 2  # 90° horizontal field of view
+CENTRE = (SIZE - 1) / 2
+K = torch.tensor([[FOCAL, 0, CENTRE], [0, FOCAL, CENTRE], [0, 0, 1]], dtype=DT)
+
+
+# ---------------------------------------------------------------- an analytic scene
+
+
+BACK_Z, FRONT_Z, FRONT_HALF = 10.0, 4.0, 1.0  # world planes z = const; the square |x|, |y| ≤ 1
+
+
+def _background(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Smooth texture of the background plane (wavelengths ≥ 17 px at 10 m), RGB in [0, 1]."""
+    return np.stack(
+        (
+            0.5 + 0.3 * np.sin(2 * np.pi * x / 6.2) * np.cos(2 * np.pi * y / 5.4),
+            0.5 + 0.3 * np.cos(2 * np.pi * (x + y) / 8.6),
+            0.4 + 0.2 * np.sin(2 * np.pi * y / 7.4),
+        )
+    )
+
+
+def _foreground(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Texture of the foreground square: dark red, clearly unlike the background."""
+    return np.stack(
+        (
+            0.9 + 0.05 * np.sin(2 * np.pi * x / 1.3),
+            0.1 + 0.05 * np.cos(2 * np.pi * y / 1.1),
+            np.full_like(x, 0.1),
+        )
+    )
+
+
+def render(cam2world: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+    """Image ``(1, 3, H, W)`` and planar depth ``(1, 1, H, W)`` of the scene seen by an OpenCV
+    camera with pose ``cam2world`` (4x4) and intrinsics K, by casting a ray through each pixel
+    centre: the square at z = FRONT_Z in front of the textured plane z = BACK_Z."""
+    ys, xs = np.mgrid[0:SIZE, 0:SIZE].astype(float)
+    ray_cam = np.stack(((xs - CENTRE) / FOCAL, (ys - CENTRE) / FOCAL, np.ones_like(xs)))
+    ray = np.einsum("ij,jhw->ihw", cam2world[:3, :3], ray_cam)  # world direction, camera z = 1
+    c = cam2world[:3, 3]
+
+    def hit(plane_z):  # ray parameter s is the planar depth (the camera-frame ray has z = 1)
+        s = (plane_z - c[2]) / ray[2]
+        return s, c[0] + s * ray[0], c[1] + s * ray[1]
+
+    s_back, xb, yb = hit(BACK_Z)
+    s_front, xf, yf = hit(FRONT_Z)
+    front = (s_front > 0) & (np.abs(xf) <= FRONT_HALF) & (np.abs(yf) <= FRONT_HALF)
+    image = np.where(front, _foreground(xf, yf), _background(xb, yb))
+    depth = np.where(front, s_front, s_back)
+    return torch.from_numpy(image)[None], torch.from_numpy(depth)[None, None]
+
+
+def relative(cam2world_target: np.ndarray, cam2world_ref: np.ndarray):
+    """(R, t) mapping target camera coordinates to the reference's."""
+    rel = np.linalg.inv(cam2world_ref) @ cam2world_target
+    return torch.from_numpy(rel[:3, :3]), torch.from_numpy(rel[:3, 3])
+
+
+def pose(rotvec=(0.0, 0.0, 0.0), centre=(0.0, 0.0, 0.0)) -> np.ndarray:
+    m = np.eye(4)
+    m[:3, :3] = rotation_vector_to_matrix(list(rotvec))
+    m[:3, 3] = centre
+    return m
+
+
+# ---------------------------------------------------------------- inverse warp
+
+
+@pytest.fixture(scope="module")
+def scene_pair():
+    """Target at the origin; reference moved (0.3, −0.2, 0.4) m and turned 0.02 rad."""
+    tgt, ref = pose(), pose((0.01, -0.02, 0.005), (0.3, -0.2, 0.4))
+    image_t, depth_t = render(tgt)
+    image_r, _ = render(ref)
+    return image_t, depth_t, image_r, relative(tgt, ref)
+
+
+def test_inverse_warp_with_true_depth_and_pose_rebuilds_the_target(scene_pair):
+    """Up to interpolation (smooth textures: a few hundredths at most, mostly at the square's
+    silhouette) and the occlusions the ODM finds, where the foreground's ghost appears."""
+    image_t, depth_t, image_r, (r, t) = scene_pair
+    warped, valid = rp.inverse_warp(image_r, depth_t, r, t, K)
+    occluded = rp.occlusion_mask(depth_t, r, t, K, dilation=0)
+    err = (warped - image_t).abs().amax(1, keepdim=True)
+    kept = valid & ~occluded
+    assert kept.float().mean() > 0.8
+    assert err[kept].mean() < 0.005
+    assert torch.quantile(err[kept], 0.99) < 0.02
+    ghost = valid & occluded & (depth_t > 9)  # background hidden by the square in the reference
+    assert ghost.sum() > 20 and err[ghost].mean() > 0.2  # there the warp copies the red square
+    assert not (warped - image_t).abs()[~valid.expand_as(warped)].eq(0).all()  # a real mask
+    # without moving the reference, nothing is rebuilt: the warp is doing the work
+    assert (image_r - image_t).abs().amax(1, keepdim=True)[kept].mean() > 10 * err[kept].mean()
+
+
+def test_inverse_warp_valid_mask_is_the_view_of_the_reference():
+    """Camera moved 1 m right: a plane at 10 m moves f·1/10 = 3.2 px left, so target pixel x
+    samples the reference at x − 3.2; columns 0-3 would sample left of the first pixel centre."""
+    depth = torch.full((1, 1, SIZE, SIZE), 10.0, dtype=DT)
+    image = torch.rand(1, 3, SIZE, SIZE, dtype=DT)
+    warped, valid = rp.inverse_warp(image, depth, None, torch.tensor([-1.0, 0, 0], dtype=DT), K)
+    assert valid[0, 0, :, 4:].all() and not valid[0, 0, :, :4].any()
+    # bilinear between columns x − 4 (weight 0.2) and x − 3 (weight 0.8)
+    expected = 0.2 * image[..., :, :-4] + 0.8 * image[..., :, 1:-3]
+    torch.testing.assert_close(warped[..., :, 4:], expected)
+    behind = rp.inverse_warp(image, depth, None, torch.tensor([0, 0, -11.0], dtype=DT), K)[1]
+    assert not behind.any()  # every point behind the reference camera
+
+
+def test_inverse_warp_agrees_with_kornia(scene_pair):
+    """kornia.geometry.depth.warp_frame_depth has our conventions (pixel centres, X_ref = R X + t)
+    wherever the sample is inside the reference (it pads with zeros, we with the border)."""
+    image_t, depth_t, image_r, (r, t) = scene_pair
+    ours, valid = rp.inverse_warp(image_r, depth_t, r, t, K)
+    m = torch.eye(4, dtype=DT)
+    m[:3, :3], m[:3, 3] = r, t
+    theirs = kornia.geometry.depth.warp_frame_depth(image_r, depth_t, m[None], K[None])
+    v = valid.expand_as(ours)
+    torch.testing.assert_close(ours[v], theirs[v])
+
+
+def test_gradients_flow_to_depth_and_pose(scene_pair):
+    image_t, depth_t, image_r, (r, t) = scene_pair
+    depth = (depth_t * 1.1).requires_grad_(True)
+    t = t.clone().requires_grad_(True)
+    warped, valid = rp.inverse_warp(image_r, depth, r, t, K)
+    loss = rp.photometric_loss(image_t, [warped], [valid]).sum()
+    xi_loss = sum(f(1 / depth, image_t, 1.0).sum() for f in rp.SMOOTH_LOSSES.values())
+    (loss + xi_loss).backward()
+    assert torch.isfinite(depth.grad).all() and torch.isfinite(t.grad).all()
+    assert depth.grad[valid].abs().gt(0).float().mean() > 0.9
+    assert t.grad.abs().sum() > 0
+
+
+# ---------------------------------------------------------------- photometric losses
+
+
+def test_l1_and_dssim_maps_by_hand():
+    a = torch.zeros(1, 3, 5, 5, dtype=DT)
+    b = a + torch.tensor([0.1, 0.2, 0.6], dtype=DT).view(1, 3, 1, 1)
+    torch.testing.assert_close(rp.l1_map(a, b), torch.full((1, 1, 5, 5), 0.3, dtype=DT))
+    x = torch.rand(2, 3, 9, 9, dtype=DT)
+    assert rp.dssim_map(x, x).abs().max() < 1e-6  # identical images: SSIM 1
+    # mixed with α = 0.15 (eq. 5.3)
+    mix = rp.photometric_map(a, b)
+    torch.testing.assert_close(mix, 0.85 * rp.l1_map(a, b) + 0.15 * rp.dssim_map(a, b))
+
+
+def test_kornia_ssim_is_the_textbook_ssim_with_a_3x3_gaussian_window():
+    """At an interior pixel: Gaussian weights exp(−d²/(2·1.5²)) normalised over the 3x3 window,
+    C1 = 0.01², C2 = 0.03² (images in [0, 1]); the border pixels use reflect padding."""
+    g = torch.Generator().manual_seed(0)
+    x, y = (
+        torch.rand(1, 1, 6, 6, generator=g, dtype=DT),
+        torch.rand(1, 1, 6, 6, generator=g, dtype=DT),
+    )
+    w1 = np.exp(-np.array([1.0, 0.0, 1.0]) / (2 * 1.5**2))
+    w = np.outer(w1, w1) / np.outer(w1, w1).sum()
+
+    def at(xw, yw):
+        mx, my = (w * xw).sum(), (w * yw).sum()
+        vx, vy = (w * xw**2).sum() - mx**2, (w * yw**2).sum() - my**2
+        cxy = (w * xw * yw).sum() - mx * my
+        c1, c2 = 0.01**2, 0.03**2
+        return (2 * mx * my + c1) * (2 * cxy + c2) / ((mx**2 + my**2 + c1) * (vx + vy + c2))
+
+    xn, yn = x[0, 0].numpy(), y[0, 0].numpy()
+    dssim = rp.dssim_map(x, y)
+    assert dssim[0, 0, 2, 3].item() == pytest.approx((1 - at(xn[1:4, 2:5], yn[1:4, 2:5])) / 2)
+    xr, yr = np.pad(xn, 1, mode="reflect"), np.pad(yn, 1, mode="reflect")
+    assert dssim[0, 0, 0, 0].item() == pytest.approx((1 - at(xr[0:3, 0:3], yr[0:3, 0:3])) / 2)
+
+
+def test_photometric_loss_masks_sums_and_minimum_sampling():
+    target = torch.zeros(1, 1, 1, 4, dtype=DT)
+    w1 = torch.tensor([[[[0.1, 0.5, 0.3, 0.9]]]], dtype=DT)
+    w2 = torch.tensor([[[[0.2, 0.4, 0.7, 0.8]]]], dtype=DT)
+    m1 = torch.tensor([[[[True, True, False, False]]]])
+    m2 = torch.tensor([[[[True, True, True, False]]]])
+    l1 = dict(alpha=0.0)
+    # eq. 4.23: each reference's mean over its kept pixels, summed
+    total = rp.photometric_loss(target, [w1, w2], [m1, m2], **l1)
+    assert total.item() == pytest.approx((0.1 + 0.5) / 2 + (0.2 + 0.4 + 0.7) / 3)
+    # §4.7.2: per-pixel minimum over the references keeping it; the last pixel has none
+    best = rp.photometric_loss(target, [w1, w2], [m1, m2], minimum=True, **l1)
+    assert best.item() == pytest.approx((0.1 + 0.4 + 0.7) / 3)
+    assert rp.photometric_loss(target, [w1], [None], **l1).item() == pytest.approx(0.45)
+    nothing = torch.zeros_like(m1)
+    assert rp.photometric_loss(target, [w1], [nothing], **l1).item() == 0  # not NaN
+
+
+# ---------------------------------------------------------------- smooth losses
+
+N = 12  # map side for the smooth-loss cases
+
+
+def _flat_image(batch: int = 1) -> torch.Tensor:
+    return torch.full((batch, 3, N, N), 0.5, dtype=DT)
+
+
+def _ramp(a: float, b: float) -> torch.Tensor:
+    ys, xs = torch.meshgrid(torch.arange(N, dtype=DT), torch.arange(N, dtype=DT), indexing="ij")
+    return (1.0 + a * xs + b * ys)[None, None]
+
+
+@pytest.mark.parametrize("name", sorted(rp.SMOOTH_LOSSES))
+def test_a_constant_inverse_depth_has_zero_smooth_loss(name):
+    image = torch.rand(2, 3, N, N, dtype=DT)
+    xi = torch.full((2, 1, N, N), 0.1, dtype=DT, requires_grad=True)
+    loss = rp.SMOOTH_LOSSES[name](xi, image, 0.5)
+    assert loss.shape == (2,) and loss.abs().max() == 0
+    loss.sum().backward()
+    assert torch.isfinite(xi.grad).all()
+
+
+def test_a_ramp_has_zero_gradient_diffusion_loss_but_not_zero_diffusion_loss():
+    """ξ = 1 + 0.375·x + 0.5·y (exact in binary) on a flat image (weight 1): ‖∇ξ‖ = 0.625
+    everywhere, Δξ = 0."""
+    xi, image = _ramp(0.375, 0.5), _flat_image()
+    for name in ("gradient_diffusion", "tvv", "robust_gradient_diffusion"):
+        assert rp.SMOOTH_LOSSES[name](xi, image, 1.0).item() == 0, name
+    assert rp.diffusion_loss(xi, image, 1.0).item() == 0.625**2
+    assert rp.tv_loss(xi, image, 1.0).item() == 0.625
+    # the ramp is not stable under diffusion: its borders flatten (thesis §4.4.6)
+    assert rp.robust_diffusion_loss(xi, image, 1.0).item() > 1e-8
+
+
+def test_laplacian_losses_of_a_parabola():
+    """ξ = x²/2 (per pixel): Δξ = 1 at every interior pixel."""
+    xs = torch.arange(N, dtype=DT)
+    xi = (xs**2 / 2).expand(1, 1, N, N)
+    assert rp.tvv_loss(xi, _flat_image(), 1.0).item() == pytest.approx(1.0)
+    assert rp.gradient_diffusion_loss(xi, _flat_image(), 1.0).item() == pytest.approx(1.0)
+
+
+def test_edge_aware_weights_by_hand():
+    """A step of 1 in every channel between columns 5 and 6 of the image, and a step s of ξ at
+    the same place: only the 11 forward differences of column 5 (rows 0-10) are non-zero, with
+    ‖∇I‖ = 1 there, out of 11 x 11."""
+    s = 0.2
+    image = _flat_image()
+    image[..., 6:] += 1
+    xi = torch.ones(1, 1, N, N, dtype=DT)
+    xi[..., 6:] += s
+    for kappa in (0.5, 1.0, 3.0):
+        expected = 11 * math.exp(-((1 / kappa) ** 2)) * s**2 / 121
+        assert rp.diffusion_loss(xi, image, kappa).item() == pytest.approx(expected)
+        expected = 11 * math.exp(-1 / kappa) * s / 121
+        assert rp.tv_loss(xi, image, kappa).item() == pytest.approx(expected)
+    # Laplacian losses: central differences put ‖∇I‖ = 1/2 on columns 5 and 6, where Δξ = ±s
+    expected = 2 * 10 * math.exp(-((0.5 / 0.7) ** 2)) * s**2 / 100
+    assert rp.gradient_diffusion_loss(xi, image, 0.7).item() == pytest.approx(expected)
+    # κ = 0: no smoothing at all; κ = inf: the plain loss
+    assert rp.diffusion_loss(xi, image, 0.0).item() == 0
+    assert rp.diffusion_loss(xi, image, math.inf).item() == pytest.approx(11 * s**2 / 121)
+
+
+def test_kappa_per_sample_solves_independent_problems_in_one_batch():
+    g = torch.Generator().manual_seed(1)
+    xi = torch.rand(3, 1, N, N, generator=g, dtype=DT)
+    image = torch.rand(3, 3, N, N, generator=g, dtype=DT)
+    kappas = torch.tensor([0.1, 1.0, 10.0], dtype=DT)
+    for name, loss in rp.SMOOTH_LOSSES.items():
+        together = loss(xi, image, kappas)
+        alone = torch.cat([loss(xi[i : i + 1], image[i : i + 1], kappas[i]) for i in range(3)])
+        torch.testing.assert_close(together, alone, msg=name)
+        one_image = loss(xi, image[:1], kappas)  # broadcast against the batch of ξ
+        torch.testing.assert_close(one_image, loss(xi, image[:1].expand(3, -1, -1, -1), kappas))
+
+
+def test_robust_diffusion_one_step_by_hand():
+    """A spike s at an interior pixel, flat image: the diffusion energy Σ‖∇ξ‖² has gradient 8s
+    at the spike and −2s at its 4 neighbours; one step γ = 0.1 moves them by −0.8s and +0.2s,
+    so the MSE is (0.64 + 4·0.04)·s² / N²."""
+    s = 0.5
+    xi = torch.zeros(1, 1, N, N, dtype=DT)
+    xi[0, 0, 5, 5] = s
+    loss = rp.robust_diffusion_loss(xi, _flat_image(), 1.0, steps=1)
+    assert loss.item() == pytest.approx(0.8 * s**2 / N**2)
+
+
+def test_robust_gradient_diffusion_one_step_by_hand():
+    """ξ = x²/2: ∂x ξ = x + 1/2, div = 1 at the interior pixels. The energy Σ(div A)² moves,
+    in one step γ = 0.1, only the differences at the ends of each interior row/column by 0.2:
+    2·(N−2) horizontal and 2·(N−2) vertical ones, among N(N−1) of each."""
+    xs = torch.arange(N, dtype=DT)
+    xi = (xs**2 / 2).expand(1, 1, N, N).contiguous()
+    loss = rp.robust_gradient_diffusion_loss(xi, _flat_image(), 1.0, steps=1)
+    assert loss.item() == pytest.approx(0.2**2 * 4 * (N - 2) / (2 * N * (N - 1)))
+    # ten steps (the default) are stable: the clone does not blow up
+    assert rp.robust_gradient_diffusion_loss(xi, _flat_image(), 1.0).item() < 1.0
+
+
+def test_image_gradient_norm_by_hand_and_as_kornia_computes_it():
+    """I = 3x² in channel 0, 4y in channel 1, 0 in channel 2: forward differences at (y, x) are
+    (3(2x + 1), 4), central ones at interior pixels (6x, 4); the norm is averaged over the 3
+    channels. The central ones are kornia's spatial_gradient(mode='diff') inside the border."""
+    ys, xs = torch.meshgrid(torch.arange(5, dtype=DT), torch.arange(6, dtype=DT), indexing="ij")
+    image = torch.stack((3 * xs**2, 4 * ys, 0 * xs))[None]
+    forward, central = rp.image_gradient_norm(image)
+    fx = 3 * (2 * xs[:-1, :-1] + 1)
+    torch.testing.assert_close(forward[0, 0], (fx + 4) / 3)
+    torch.testing.assert_close(central[0, 0], (6 * xs[1:-1, 1:-1] + 4) / 3)
+    k = kornia.filters.spatial_gradient(image, mode="diff")[..., 1:-1, 1:-1]
+    torch.testing.assert_close(central, k.norm(dim=2).mean(1, keepdim=True))
+
+
+# ---------------------------------------------------------------- direct warp and the ODM
+
+
+def test_direct_warp_with_identity_pose_paints_every_pixel_on_itself():
+    depth = 1 + 9 * torch.rand(2, 1, 16, 20, dtype=DT)
+    k = torch.tensor([[15.0, 0, 9.5], [0, 15, 7.5], [0, 0, 1]], dtype=DT)
+    warped, index = rp.direct_warp(depth, None, torch.zeros(3), k)
+    torch.testing.assert_close(warped, depth)
+    assert (index == torch.arange(16 * 20).reshape(1, 1, 16, 20)).all()
+
+
+def test_direct_warp_of_a_plane_under_forward_motion_leaves_no_hole():
+    """Plane at 10 m, camera 1 m forward: every reference pixel is painted, at depth 9 m, and the
+    ODM finds only the target's border leaving the view: pixel x is seen when its square,
+    centre cx + (x − cx)·10/9, half-width 5/9 px, covers a pixel centre ≥ 0: x ≥ 3 (by hand:
+    cx + (x + ½ − cx)·10/9 > 0 for x > 2.65), and symmetrically x ≤ 60."""
+    depth = torch.full((1, 1, SIZE, SIZE), 10.0, dtype=DT)
+    t = torch.tensor([0, 0, -1.0], dtype=DT)
+    warped, index = rp.direct_warp(depth, None, t, K)
+    assert torch.isfinite(warped).all() and (index >= 0).all()
+    torch.testing.assert_close(warped, torch.full_like(warped, 9.0))
+    border = torch.ones(SIZE, SIZE, dtype=torch.bool)
+    border[3:61, 3:61] = False
+    for method in ("index", "warp_back"):
+        occluded = rp.occlusion_mask(depth, None, t, K, method=method, dilation=0)
+        assert (occluded[0, 0] == border).all(), method
+
+
+def test_odm_finds_the_occluded_band_beside_a_foreground_square():
+    """Background at 8 m, a square at 2 m (rows and columns 20-39), camera moved (0.25, 0.25, 0)
+    m (right and down). Flow −f·T/Z: the background moves 1 px up-left, the square 4 px: it hides
+    the background pixels whose image 3 px (= f·T·(1/2 − 1/8)) further right and down is in the
+    square: rows and columns 17-36 minus the square; plus row 0 and column 0, which leave
+    the view."""
+    depth = torch.full((1, 1, SIZE, SIZE), 8.0, dtype=DT)
+    depth[..., 20:40, 20:40] = 2.0
+    t = torch.tensor([-0.25, -0.25, 0.0], dtype=DT)
+    expected = torch.zeros(SIZE, SIZE, dtype=torch.bool)
+    expected[17:37, 17:37] = True
+    expected[20:40, 20:40] = False
+    expected[0, :] = expected[:, 0] = True
+    for method in ("index", "warp_back"):
+        occluded = rp.occlusion_mask(depth, None, t, K, method=method, dilation=0)
+        assert (occluded[0, 0] == expected).all(), method
+    # the default dilation widens every occluded region by 2 pixels
+    dilated = rp.occlusion_mask(depth, None, t, K)
+    assert dilated[0, 0, 18, 15] and not dilated[0, 0, 18, 14] and dilated[0, 0, 2, 30]
+    assert not dilated[0, 0, 3, 30] and not dilated[0, 0, 30, 30]
+
+
+def test_direct_warp_is_per_sample_in_a_batch():
+    d1 = torch.full((1, 1, 16, 16), 5.0, dtype=DT)
+    d2 = d1.clone()
+    d2[..., 4:9, 4:9] = 1.0
+    t = torch.tensor([[-0.3, 0.1, 0.2], [0.2, -0.1, -0.3]], dtype=DT)
+    k = torch.tensor([[8.0, 0, 7.5], [0, 8, 7.5], [0, 0, 1]], dtype=DT)
+    both = rp.direct_warp(torch.cat((d1, d2)), None, t, k)
+    for i, d in enumerate((d1, d2)):
+        alone = rp.direct_warp(d, None, t[i], k)
+        assert torch.equal(both[0][i], alone[0][0]) and torch.equal(both[1][i], alone[1][0])
+
+
+def test_occlusion_method_is_checked():
+    with pytest.raises(ValueError, match="occlusion method"):
+        rp.occlusion_mask(torch.ones(1, 1, 4, 4), None, torch.zeros(3), K, method="nope")
+
+
+def test_invert_pose_round_trip():
+    r = torch.from_numpy(rotation_vector_to_matrix([0.1, -0.2, 0.3]))
+    t = torch.tensor([0.5, -1.0, 2.0], dtype=DT)
+    ri, ti = rp.invert_pose(r, t)
+    torch.testing.assert_close(ri @ r, torch.eye(3, dtype=DT))
+    torch.testing.assert_close(ri @ t + ti, torch.zeros(3, dtype=DT))
+
+
+# ---------------------------------------------------------------- a rendered pair
+
+
+def test_a_rendered_pair_warped_with_its_true_depth_and_pose(tiny_dataset):
+    """A real Cycles pair of the tiny dataset, frames 9 → 0 of a scene (0.9 m apart): the
+    reference warped with the target's true depth and the recorded poses matches the target,
+    away from occlusions and the view's edge, far better than the unwarped reference or a warp
+    with the inverse pose do (what is left is render noise and 64 px aliasing)."""
+    from stillbox_gen.dataset import Dataset
+
+    scene = Dataset(tiny_dataset).scenes()[0]
+    target, reference = 9, 0
+
+    def image(frame: int) -> torch.Tensor:
+        return torch.from_numpy(scene.load_rgb(frame)).permute(2, 0, 1)[None].double() / 255
+
+    image_t, image_r = image(target), image(reference)
+    depth = torch.from_numpy(scene.load_depth(target).astype(np.float64))[None, None]
+    k = torch.from_numpy(scene.K)
+
+    def error(rel: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+        r, t = torch.from_numpy(rel[:3, :3]), torch.from_numpy(rel[:3, 3])
+        warped, valid = rp.inverse_warp(image_r, depth, r, t, k)
+        kept = valid & ~rp.occlusion_mask(depth, r, t, k)
+        assert kept.float().mean() > 0.3
+        before = (image_r - image_t).abs().mean(1, keepdim=True)[kept].mean()
+        return (warped - image_t).abs().mean(1, keepdim=True)[kept].mean(), before
+
+    err, before = error(scene.relative_pose(target, reference))
+    wrong, _ = error(scene.relative_pose(reference, target))
+    assert err < 0.6 * before and err < 0.5 * wrong and err < 0.04, (err, before, wrong)
