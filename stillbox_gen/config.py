@@ -654,14 +654,20 @@ def validate(
 
 
 def _check_fixed(cfg: DatasetConfig, where: Callable[[str], str]) -> None:
-    """objects.fixed: a name of FIXED_SCENES, whose surfaces use named bundled photos (so
-    neither materials.photos = "none" nor a preset's or --textures' own photos)."""
+    """objects.fixed: a name of FIXED_SCENES, seen by a camera in world axes (no random
+    orientation), whose surfaces use named bundled photos (so neither materials.photos =
+    "none" nor a preset's or --textures' own photos)."""
     fixed, m = cfg.objects.fixed, cfg.materials
     if fixed is None:
         return
     if fixed not in FIXED_SCENES:
         raise ConfigError(
             f"{where('objects.fixed')} must be one of {FIXED_SCENES}, got {_show(fixed)}"
+        )
+    if cfg.camera.random_orientation:
+        raise ConfigError(
+            f"{where('camera.random_orientation')} must be false with objects.fixed: the fixed "
+            "scenes are laid out in the camera's axes (world axes)"
         )
     if m.photos != "bundled" or m.texture_files or m.textures_dir:
         key = "materials.photos" if m.photos != "bundled" else "materials.texture_files"

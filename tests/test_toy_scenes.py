@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from conftest import assert_user_error, invoke_cli, run_cli
 
-from stillbox_gen import config, dataset, photos, scene, shapes
+from stillbox_gen import cli, config, dataset, photos, scene, shapes
 from stillbox_gen.config import ConfigError
 
 PRESETS = {"flower": "toy-flower", "horizon": "toy-horizon"}
@@ -155,6 +155,7 @@ def test_camera_path_into_a_fixed_object_is_refused():
         ({"objects": {"fixed": "daisy"}}, ["objects.fixed", "'flower'", "'daisy'"]),
         ({"objects": {"kinds": ("cube", "disc")}}, ["objects.kinds", "'plane'"]),
         ({"materials": {"photos": "none"}}, ["materials.photos", "bundled photos"]),
+        ({"camera": {"random_orientation": True}}, ["camera.random_orientation", "false"]),
     ],
 )
 def test_bad_toy_keys_are_named(sections, words):
@@ -170,6 +171,18 @@ def test_photos_none_with_a_fixed_scene_is_a_one_line_error(tmp_path):
     proc = invoke_cli("--preset", "toy-horizon", "--photos", "none", "--out", out)
     assert_user_error(proc, "--photos", "horizon", "objects.fixed")
     assert not out.exists()
+
+
+def test_scenes_default_is_one_for_a_fixed_scene():
+    """A fixed scene is the same at every index: one scene unless --scenes says otherwise."""
+
+    def scenes(*args):
+        ctx = cli.generate.make_context("generate", [str(a) for a in args])
+        return cli.run_options(ctx.params, cli.build_config(ctx.params)).scenes
+
+    assert scenes("--preset", "toy-flower") == cli.DEFAULT_FIXED_SCENES == 1
+    assert scenes("--preset", "toy-flower", "--scenes", 4) == 4
+    assert scenes() == cli.DEFAULT_SCENES == 100
 
 
 def test_direction_in_a_preset_file_must_be_three_numbers(tmp_path):
