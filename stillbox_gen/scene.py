@@ -396,22 +396,28 @@ def sample_scene(cfg: DatasetConfig, index: int) -> SceneSpec:
 # "path" shading it is the world's ambient colour: texture-less either way.
 FLOWER_DISTANCE = 2.0  # m, the foreground disc in front of the middle frame's camera
 FLOWER_DIAMETER = 1.6  # m: 80 px of a 200 px frame at 90 deg
-FLOWER_PHOTO = "forest.exr"
+FLOWER_PHOTO = "interior.exr"
 FLOWER_PHOTO_SPAN = 2.0  # m, one photo across the disc (a crop of the panorama)
 BACKGROUND_DISTANCE = 10.0  # m (thesis: "depth starting points are equal to background, 10m")
-BACKGROUND_PHOTO = "courtyard.exr"
+BACKGROUND_PHOTO = "forest.exr"
 BACKGROUND_PHOTO_SPAN = 25.0  # m, one photo across the background at 10 m (about 20 m seen)
 HORIZON_HEIGHT = 2.0  # m, camera above the ground plane
 HORIZON_PHOTO = "forest.exr"
 HORIZON_PHOTO_SPAN = 8.0  # m of ground per photo repeat
+# Photo turns: upright facing the camera (sky up); on the ground, the photo's rows run along
+# the view, so its textured lower half lies under the camera (turned upright, its sky would be
+# a texture-less band across the near ground)
+UPRIGHT = -math.pi / 2
+ALONG_VIEW = 0.0
 FIXED_SUN_STRENGTH = 2.0  # W/m^2: with the ambient term, the brightest texels just reach 1
 FIXED_AMBIENT_STRENGTH = 0.5
 
 
-def _photo_material(name: str, span_m: float) -> MaterialSpec:
+def _photo_material(name: str, span_m: float, turn: float) -> MaterialSpec:
     """A matte surface textured with the bundled photo ``name``, one photo per ``span_m``
-    metres, untinted, unrotated, the photo's centre at the primitive's centre (the offset is
-    added after the scale, in photo widths: Blender's Mapping node)."""
+    metres, untinted, turned by ``turn`` radians about the surface normal (local z), the
+    photo's centre at the primitive's centre (the offset is added after the scale and turn, in
+    photo widths: Blender's Mapping node)."""
     return MaterialSpec(
         "image",
         None,
@@ -420,7 +426,7 @@ def _photo_material(name: str, span_m: float) -> MaterialSpec:
         scale=1.0 / span_m,
         detail=0.0,
         offset=[0.5, 0.5, 0.5],
-        rotation=[0.0, 0.0, 0.0],
+        rotation=[0.0, 0.0, turn],
         roughness=1.0,
         metallic=0.0,
         image=name,
@@ -474,11 +480,14 @@ def flower_layout(cam: CameraSpec) -> tuple[list[PrimitiveSpec], BoxSpec, LightS
         [FLOWER_DIAMETER, FLOWER_DIAMETER, thickness],
         _plain_floats(disc_at),
         [0.0, 1.0, 0.0, 0.0],  # local +z (the textured face) towards the camera
-        _photo_material(FLOWER_PHOTO, FLOWER_PHOTO_SPAN),
+        _photo_material(FLOWER_PHOTO, FLOWER_PHOTO_SPAN, UPRIGHT),
     )
     side = 8.0 * BACKGROUND_DISTANCE  # far wider than any frame's view of it
     wall = _facing(
-        wall_at, [side, side, 0.0], _photo_material(BACKGROUND_PHOTO, BACKGROUND_PHOTO_SPAN), 2
+        wall_at,
+        [side, side, 0.0],
+        _photo_material(BACKGROUND_PHOTO, BACKGROUND_PHOTO_SPAN, UPRIGHT),
+        2,
     )
     return [disc, wall], _far_box(centre, cam), _fixed_light([0.1, 0.2, 1.0])
 
@@ -491,7 +500,10 @@ def horizon_layout(cam: CameraSpec) -> tuple[list[PrimitiveSpec], BoxSpec, Light
     ground_at = [float(start[0]), float(start[1]) + HORIZON_HEIGHT, float(start[2])]
     side = 4.0 * cam.far_clip  # the plane's edge stays beyond the far clip
     ground = _facing(
-        ground_at, [side, side, 0.0], _photo_material(HORIZON_PHOTO, HORIZON_PHOTO_SPAN), 1
+        ground_at,
+        [side, side, 0.0],
+        _photo_material(HORIZON_PHOTO, HORIZON_PHOTO_SPAN, ALONG_VIEW),
+        1,
     )
     return [ground], _far_box(start, cam), _fixed_light([0.2, 1.0, 0.5])
 
