@@ -405,6 +405,10 @@ def build_config(o: dict) -> config.DatasetConfig:
         for key in values
     }
     config.validate(cfg, origin=config.preset_origin(o["preset"]), given=given)
+    if cfg.objects.fixed is not None:  # its camera path against its surfaces, before any file
+        from .scene import sample_scene
+
+        sample_scene(cfg, 0)  # the same layout at every index: ConfigError if the path hits it
     return cfg
 
 

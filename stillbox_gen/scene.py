@@ -18,7 +18,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from . import camera, photos, portable, shapes
-from .config import DatasetConfig, MaterialsConfig, is_plain_name
+from .config import ConfigError, DatasetConfig, MaterialsConfig, is_plain_name
 
 # Pattern frequencies (features per metre), low enough that textures stay legible at 64 px with a
 # 90 deg FOV: one pixel covers distance / 32 metres, i.e. ~0.5 m on an object at 15 m and ~2 m
@@ -463,10 +463,10 @@ def _fixed_light(travel: list[float]) -> LightSpec:
 
 
 def flower_layout(cam: CameraSpec) -> tuple[list[PrimitiveSpec], BoxSpec, LightSpec]:
-    """ "Flower": a photo-textured disc FLOWER_DISTANCE m in front of the middle frame's camera,
-    on its optical axis, parallel to the image plane, before a photo-textured plane at
-    BACKGROUND_DISTANCE m that fills every frame. Needs a camera in world axes (no random
-    orientation), the middle frame's optical axis along world +z."""
+    """The "Flower" scene: a photo-textured disc FLOWER_DISTANCE m in front of the middle
+    frame's camera, on its optical axis, parallel to the image plane, before a photo-textured
+    plane at BACKGROUND_DISTANCE m that fills every frame. Needs a camera in world axes (no
+    random orientation), the middle frame's optical axis along world +z."""
     centre = np.array(cam.cam2world[len(cam.cam2world) // 2])[:3, 3]
     thickness = 0.02  # m; the textured face is at FLOWER_DISTANCE
     disc_at = [
@@ -493,9 +493,9 @@ def flower_layout(cam: CameraSpec) -> tuple[list[PrimitiveSpec], BoxSpec, LightS
 
 
 def horizon_layout(cam: CameraSpec) -> tuple[list[PrimitiveSpec], BoxSpec, LightSpec]:
-    """ "Horizon": a photo-textured horizontal plane HORIZON_HEIGHT m below the first frame's
-    camera (world +y is down, as the camera's y), reaching past the far clip in every direction
-    seen: ground up to the horizon, sky above it. Needs a camera in world axes."""
+    """The "Horizon" scene: a photo-textured horizontal plane HORIZON_HEIGHT m below the first
+    frame's camera (world +y is down, as the camera's y), reaching past the far clip in every
+    direction seen: ground up to the horizon, sky above it. Needs a camera in world axes."""
     start = np.array(cam.cam2world[0])[:3, 3]
     ground_at = [float(start[0]), float(start[1]) + HORIZON_HEIGHT, float(start[2])]
     side = 4.0 * cam.far_clip  # the plane's edge stays beyond the far clip
@@ -514,13 +514,15 @@ FIXED_SCENES = {"flower": flower_layout, "horizon": horizon_layout}  # config.FI
 def fixed_scene(cfg: DatasetConfig, index: int, cam: CameraSpec) -> SceneSpec:
     """Scene ``index`` of a dataset of fixed scenes (``objects.fixed``): the same layout,
     camera path and light for every index and seed; only ``index`` and ``seed`` (hence the
-    placement of anti-aliasing samples) differ. RuntimeError if the camera path comes within
-    ``objects.path_clearance`` of a surface (too long a path)."""
+    placement of anti-aliasing samples) differ. ConfigError if the camera path comes within
+    ``objects.path_clearance`` of a surface (too long a path; cli.build_config checks it before
+    anything is written)."""
     prims, box, light = FIXED_SCENES[cfg.objects.fixed](cam)
     if any(path_hits(p, cam, cfg.objects.path_clearance) for p in prims):
-        raise RuntimeError(
-            f"fixed scene '{cfg.objects.fixed}': the camera path comes within "
-            f"{cfg.objects.path_clearance} m of a surface; shorten camera.displacement or frames"
+        raise ConfigError(
+            f"camera.displacement: the camera path of the fixed scene '{cfg.objects.fixed}' "
+            f"(objects.fixed) comes within {cfg.objects.path_clearance} m of a surface; "
+            "shorten camera.displacement or camera.frames"
         )
     return SceneSpec(
         index=index,

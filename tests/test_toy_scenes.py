@@ -140,12 +140,22 @@ def test_plane_distance_and_mesh():
     assert np.cross(b - a, c - b)[2] > 0
 
 
-def test_camera_path_into_a_fixed_object_is_refused():
+def test_camera_path_into_a_fixed_object_is_refused(tmp_path):
     """A path through the flower disc (forward 2.5 m per frame: the disc is 2 m before the
-    middle frame, so the last frame is 0.5 m past it) is an error, not a scene."""
+    middle frame, so the last frame is 0.5 m past it) is a one-line error before any file."""
     cfg = toy("flower", camera={"direction": (0.0, 0.0, 1.0), "displacement": 2.5})
-    with pytest.raises(RuntimeError, match="fixed scene 'flower'.*camera path"):
+    with pytest.raises(ConfigError, match="fixed scene 'flower'.*camera.displacement"):
         scene.sample_scene(cfg, 0)
+    path = tmp_path / "forward.toml"
+    text = (Path(config.__file__).parent.parent / "scene_presets" / "toy-flower.toml").read_text()
+    path.write_text(text.replace("direction = [1.0, 1.0, 0.0]", "direction = [0.0, 0.0, 1.0]"))
+    out = tmp_path / "ds"
+    proc = invoke_cli("--preset", path, "--displacement", 2.5, "--out", out)
+    assert_user_error(proc, "camera.displacement", "'flower'")
+    assert not out.exists()
+    assert (
+        invoke_cli("--preset", path, "--displacement", 0.5, "--out", out, "--help").returncode == 0
+    )
 
 
 @pytest.mark.parametrize(
