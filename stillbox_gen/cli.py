@@ -123,12 +123,16 @@ _DEVICE = click.option(
 )
 _RES = f"{_CAM.width}" if _CAM.width == _CAM.height else f"{_CAM.width}x{_CAM.height}"
 DEFAULT_SCENES = 100  # --scenes
+DEFAULT_FIXED_SCENES = 1  # --scenes of a fixed scene (objects.fixed): every scene is the same
 
 
 @cli.command()
 @click.option("--res", help=f"Frame size in pixels: N (square) or WxH.  [default: preset, {_RES}]")
 @click.option(
-    "--scenes", type=int, default=DEFAULT_SCENES, show_default=True, help="Number of scenes."
+    "--scenes",
+    type=int,
+    help=f"Number of scenes.  [default: {DEFAULT_SCENES}; {DEFAULT_FIXED_SCENES} with a fixed "
+    "scene (objects.fixed, e.g. --preset toy-flower)]",
 )
 @click.option(
     "--out",
@@ -262,7 +266,7 @@ def generate(**o) -> None:
     opts = dataclasses.replace(opts, device=device)
     c, out, shard = cfg.camera, opts.out, opts.shard
     banner = (
-        f"stillbox-gen: {o['scenes']} scenes of {c.frames} frames at {c.width}x{c.height} "
+        f"stillbox-gen: {opts.scenes} scenes of {c.frames} frames at {c.width}x{c.height} "
         f"(preset {cfg.preset}, seed {cfg.seed}) -> {out}"
     )
     if shard != (0, 1):
@@ -282,6 +286,8 @@ def run_options(o: dict, cfg: config.DatasetConfig) -> RunOptions:
     """The generate.RunOptions of the command-line options ``o`` (ConfigError naming the flag)."""
     from .generate import RunOptions
 
+    if o["scenes"] is None:
+        o = {**o, "scenes": DEFAULT_FIXED_SCENES if cfg.objects.fixed else DEFAULT_SCENES}
     for flag in ("scenes", "workers"):
         if o[flag] < 1:
             raise ConfigError(f"--{flag}: must be at least 1, got {o[flag]}")
@@ -399,6 +405,10 @@ def build_config(o: dict) -> config.DatasetConfig:
         for key in values
     }
     config.validate(cfg, origin=config.preset_origin(o["preset"]), given=given)
+    if cfg.objects.fixed is not None:  # its camera path against its surfaces, before any file
+        from .scene import sample_scene
+
+        sample_scene(cfg, 0)  # the same layout at every index: ConfigError if the path hits it
     return cfg
 
 

@@ -22,7 +22,13 @@ import numpy as np
 
 from . import camera
 
-PRIMITIVE_KINDS = ("cube", "sphere", "cone", "torus", "cylinder", "slab")
+PRIMITIVE_KINDS = ("cube", "sphere", "cone", "torus", "cylinder", "slab")  # objects.kinds default
+# Every shape kind (shapes.py): the default draw above, plus "plane" (a flat rectangle, e.g. the
+# ground of the toy "horizon" scene), which random scenes draw only when objects.kinds names it.
+SHAPE_KINDS = (*PRIMITIVE_KINDS, "plane")
+# Fixed scenes (objects.fixed): a named layout built by scene.FIXED_SCENES instead of random
+# primitives; "flower" and "horizon" are the toy problems of thesis 4.6.1 (Fig. 4.11).
+FIXED_SCENES = ("flower", "horizon")
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp")
 IMAGE_FORMATS = ("png", "jpg")
 PHOTO_SOURCES = ("bundled", "none")
@@ -74,7 +80,10 @@ class CameraConfig:
     frames: int = 10
     displacement: float = 0.1  # metres per frame
     time_step: float = 1.0 / 30.0  # seconds per frame; speed = displacement / time_step
-    random_orientation: bool = True  # fixed random orientation per scene (else looking down -Z)
+    random_orientation: bool = True  # fixed random orientation per scene (else world axes)
+    # Direction of motion [x, y, z] in the first frame's camera axes (x right, y down, z forward;
+    # normalised, length = displacement), or None: a uniformly random direction per scene.
+    direction: tuple[float, float, float] | None = None
     rotation_noise_deg: float = 0.0  # std of per-frame orientation noise (thesis 6.4)
     rotation_speed_deg: float = 0.0  # constant angular speed per frame (unstabilised camera)
 
@@ -99,6 +108,9 @@ class ObjectsConfig:
     distance_law: str = "volume"  # "uniform" in distance or "volume" (uniform in the shell)
     behind_fraction: float = 0.05  # share placed anywhere around the camera (else in view)
     path_clearance: float = 0.1  # metres kept between the camera path and any surface
+    # A fixed scene by name (FIXED_SCENES) instead of ``count`` random primitives: the same
+    # objects, walls and light for every scene index and seed (see scene.FIXED_SCENES).
+    fixed: str | None = None
 
 
 @dataclass(frozen=True)
@@ -200,7 +212,15 @@ class DatasetConfig:
     split: tuple[float, float, float] = (0.8, 0.1, 0.1)  # train / val / test shares by scene
 
     def to_dict(self) -> dict:
-        return dataclasses.asdict(self)
+        """Every field, but those of OMITTED_AT_DEFAULT at their default: keys added after
+        datasets were published are left out while unused, so that those datasets' configs
+        (and fingerprints) stay what they were."""
+        d = dataclasses.asdict(self)
+        for key in OMITTED_AT_DEFAULT:
+            sec, name = key.split(".")
+            if d[sec][name] is None:
+                del d[sec][name]
+        return d
 
     def fingerprint(self) -> str:
         """Hash of everything that determines scene content (used to refuse mixing datasets)."""
@@ -208,6 +228,10 @@ class DatasetConfig:
 
         return hashlib.sha256(canonical_json(self.to_dict()).encode()).hexdigest()[:16]
 
+
+# Config keys written to dataset.json only when set (None = unset); from_dict takes their
+# absence as the default.
+OMITTED_AT_DEFAULT = ("camera.direction", "objects.fixed")
 
 SECTIONS = {
     "camera": CameraConfig,
@@ -529,6 +553,11 @@ def validate(
         raise ConfigError(
             f"{where('camera.time_step')} must be positive (seconds), got {c.time_step}"
         )
+    if c.direction is not None and not any(x != 0 for x in c.direction):
+        raise ConfigError(
+            f"{where('camera.direction')} must be a non-zero vector [x, y, z] (camera axes), "
+            f"got {_show(c.direction)}"
+        )
     for key in ("rotation_noise_deg", "rotation_speed_deg"):
         if getattr(c, key) < 0:
             raise ConfigError(
@@ -536,12 +565,13 @@ def validate(
             )
     if o.count < 0:
         raise ConfigError(f"{where('objects.count')} must be >= 0, got {o.count}")
-    bad = [k for k in o.kinds if k not in PRIMITIVE_KINDS]
+    bad = [k for k in o.kinds if k not in SHAPE_KINDS]
     if bad or not o.kinds:
         raise ConfigError(
-            f"{where('objects.kinds')} must be a non-empty list of {list(PRIMITIVE_KINDS)}, "
+            f"{where('objects.kinds')} must be a non-empty list of {list(SHAPE_KINDS)}, "
             f"got {_show(o.kinds)}"
         )
+    _check_fixed(cfg, where)
     _check_range(where, "objects.size_range", o.size_range)
     _check_range(where, "objects.distance_range", o.distance_range)
     if o.distance_law not in DISTANCE_LAWS:
@@ -620,6 +650,30 @@ def validate(
         raise ConfigError(
             f"{where('split')} must be three non-negative shares summing to 1, "
             f"got {_show(cfg.split)}"
+        )
+
+
+def _check_fixed(cfg: DatasetConfig, where: Callable[[str], str]) -> None:
+    """objects.fixed: a name of FIXED_SCENES, seen by a camera in world axes (no random
+    orientation), whose surfaces use named bundled photos (so neither materials.photos =
+    "none" nor a preset's or --textures' own photos)."""
+    fixed, m = cfg.objects.fixed, cfg.materials
+    if fixed is None:
+        return
+    if fixed not in FIXED_SCENES:
+        raise ConfigError(
+            f"{where('objects.fixed')} must be one of {FIXED_SCENES}, got {_show(fixed)}"
+        )
+    if cfg.camera.random_orientation:
+        raise ConfigError(
+            f"{where('camera.random_orientation')} must be false with objects.fixed: the fixed "
+            "scenes are laid out in the camera's axes (world axes)"
+        )
+    if m.photos != "bundled" or m.texture_files or m.textures_dir:
+        key = "materials.photos" if m.photos != "bundled" else "materials.texture_files"
+        raise ConfigError(
+            f"{where(key)} the fixed scene '{fixed}' (objects.fixed) is textured with bundled "
+            "photos: it takes neither --textures nor --photos none"
         )
 
 

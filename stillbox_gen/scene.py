@@ -18,7 +18,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from . import camera, photos, portable, shapes
-from .config import DatasetConfig, MaterialsConfig, is_plain_name
+from .config import ConfigError, DatasetConfig, MaterialsConfig, is_plain_name
 
 # Pattern frequencies (features per metre), low enough that textures stay legible at 64 px with a
 # 90 deg FOV: one pixel covers distance / 32 metres, i.e. ~0.5 m on an object at 15 m and ~2 m
@@ -234,6 +234,8 @@ def primitive_dimensions(rng: np.random.Generator, kind: str, size: float) -> li
         ratio = rng.uniform(0.15, 0.5)  # minor / major radius
         major = size / 2 / (1 + ratio)
         return [size, size, 2 * major * ratio]
+    if kind == "plane":
+        return [size, float(size * a), 0.0]
     raise ValueError(kind)
 
 
@@ -249,7 +251,10 @@ def sample_distance(rng: np.random.Generator, r: tuple[float, float], law: str) 
 def sample_camera(rng: np.random.Generator, cfg: DatasetConfig) -> CameraSpec:
     c = cfg.camera
     r0 = camera.random_rotation(rng) if c.random_orientation else np.eye(3)
-    direction = camera.random_unit_vector(rng)  # in the first frame's camera axes
+    if c.direction is None:  # in the first frame's camera axes
+        direction = camera.random_unit_vector(rng)
+    else:
+        direction = np.array(portable.normalise(c.direction))
     # portable.* products (not numpy's @): the same bits on every CPU
     speed = direction * c.displacement / c.time_step
     spin_axis = camera.random_unit_vector(rng)
@@ -359,8 +364,11 @@ def scene_seed(seed: int, index: int) -> int:
 
 
 def sample_scene(cfg: DatasetConfig, index: int) -> SceneSpec:
-    """Scene ``index`` of the dataset, resampled until the camera path is clear of objects."""
+    """Scene ``index`` of the dataset, resampled until the camera path is clear of objects;
+    with ``objects.fixed``, the fixed scene of that name (fixed_scene)."""
     rng = portable.Generator(np.random.PCG64(np.random.SeedSequence([cfg.seed, index])))
+    if cfg.objects.fixed is not None:
+        return fixed_scene(cfg, index, sample_camera(rng, cfg))
     for attempt in range(MAX_ATTEMPTS):
         cam = sample_camera(rng, cfg)
         prims = [sample_primitive(rng, cfg, cam) for _ in range(cfg.objects.count)]
@@ -377,4 +385,151 @@ def sample_scene(cfg: DatasetConfig, index: int) -> SceneSpec:
     raise RuntimeError(
         f"scene {index}: {MAX_ATTEMPTS} samples all put an object on the camera path; "
         "lower objects.count or raise objects.distance_range"
+    )
+
+
+# ---------------------------------------------------------------- fixed scenes
+# The toy problems of thesis 4.6.1 (Fig. 4.11): objects, walls and light built from the camera
+# path, with no random draw, so that every scene index and seed gives the same scene. The walls
+# lie beyond the far clip (their pixels are misses, depth 1e10: the "sky"), with a plain
+# material that is never seen. Under "direct" shading (black world) the sky is black; under
+# "path" shading it is the world's ambient colour: texture-less either way.
+FLOWER_DISTANCE = 2.0  # m, the foreground disc in front of the middle frame's camera
+FLOWER_DIAMETER = 1.6  # m: 80 px of a 200 px frame at 90 deg
+FLOWER_PHOTO = "interior.exr"
+FLOWER_PHOTO_SPAN = 2.0  # m, one photo across the disc (a crop of the panorama)
+BACKGROUND_DISTANCE = 10.0  # m (thesis: "depth starting points are equal to background, 10m")
+BACKGROUND_PHOTO = "forest.exr"
+BACKGROUND_PHOTO_SPAN = 25.0  # m, one photo across the background at 10 m (about 20 m seen)
+HORIZON_HEIGHT = 2.0  # m, camera above the ground plane
+HORIZON_PHOTO = "forest.exr"
+HORIZON_PHOTO_SPAN = 8.0  # m of ground per photo repeat
+# Photo turns: upright facing the camera (sky up); on the ground, the photo's rows run along
+# the view, so its textured lower half lies under the camera (turned upright, its sky would be
+# a texture-less band across the near ground)
+UPRIGHT = -math.pi / 2
+ALONG_VIEW = 0.0
+FIXED_SUN_STRENGTH = 2.0  # W/m^2: with the ambient term, the brightest texels just reach 1
+FIXED_AMBIENT_STRENGTH = 0.5
+
+
+def _photo_material(name: str, span_m: float, turn: float) -> MaterialSpec:
+    """A matte surface textured with the bundled photo ``name``, one photo per ``span_m``
+    metres, untinted, turned by ``turn`` radians about the surface normal (local z), the
+    photo's centre at the primitive's centre (the offset is added after the scale and turn, in
+    photo widths: Blender's Mapping node)."""
+    return MaterialSpec(
+        "image",
+        None,
+        colors=[[1.0, 1.0, 1.0]],
+        positions=[],
+        scale=1.0 / span_m,
+        detail=0.0,
+        offset=[0.5, 0.5, 0.5],
+        rotation=[0.0, 0.0, turn],
+        roughness=1.0,
+        metallic=0.0,
+        image=name,
+    )
+
+
+def _facing(location, dimensions: list[float], material: MaterialSpec, normal_axis: int):
+    """A flat primitive at a world ``location`` whose local +z is world axis ``normal_axis``
+    negated (facing a camera that looks along world +z, or down world +y)."""
+    # quaternions [w, x, y, z]: local +z -> world -z (half turn about x), or -> world -y
+    # (quarter turn about x: local y -> world z, so the rectangle lies along the view)
+    half = math.sqrt(0.5)  # correctly rounded (IEEE 754): the same bits everywhere
+    rotation = [0.0, 1.0, 0.0, 0.0] if normal_axis == 2 else [half, half, 0.0, 0.0]
+    return PrimitiveSpec("plane", dimensions, _plain_floats(location), rotation, material)
+
+
+def _far_box(centre, cam: CameraSpec) -> BoxSpec:
+    """Walls twice the far clip away from ``centre``: never within the render distance."""
+    plain = MaterialSpec(
+        "plain", None, [[0.5, 0.5, 0.5]], [], 1.0, 0.0, [0.0] * 3, [0.0] * 3, 1.0, 0.0, None
+    )
+    return BoxSpec(_plain_floats(centre), [2.0 * cam.far_clip] * 3, plain)
+
+
+def _fixed_light(travel: list[float]) -> LightSpec:
+    """White sun travelling along ``travel`` (world) and white ambient light."""
+    return LightSpec(
+        sun_direction=_plain_floats(portable.normalise(travel)),
+        sun_strength=FIXED_SUN_STRENGTH,
+        sun_color=[1.0, 1.0, 1.0],
+        ambient_color=[1.0, 1.0, 1.0],
+        ambient_strength=FIXED_AMBIENT_STRENGTH,
+    )
+
+
+def flower_layout(cam: CameraSpec) -> tuple[list[PrimitiveSpec], BoxSpec, LightSpec]:
+    """The "Flower" scene: a photo-textured disc FLOWER_DISTANCE m in front of the middle
+    frame's camera, on its optical axis, parallel to the image plane, before a photo-textured
+    plane at BACKGROUND_DISTANCE m that fills every frame. Needs a camera in world axes (no
+    random orientation), the middle frame's optical axis along world +z."""
+    centre = np.array(cam.cam2world[len(cam.cam2world) // 2])[:3, 3]
+    thickness = 0.02  # m; the textured face is at FLOWER_DISTANCE
+    disc_at = [
+        float(centre[0]),
+        float(centre[1]),
+        float(centre[2]) + FLOWER_DISTANCE + thickness / 2,
+    ]
+    wall_at = [float(centre[0]), float(centre[1]), float(centre[2]) + BACKGROUND_DISTANCE]
+    disc = PrimitiveSpec(
+        "cylinder",
+        [FLOWER_DIAMETER, FLOWER_DIAMETER, thickness],
+        _plain_floats(disc_at),
+        [0.0, 1.0, 0.0, 0.0],  # local +z (the textured face) towards the camera
+        _photo_material(FLOWER_PHOTO, FLOWER_PHOTO_SPAN, UPRIGHT),
+    )
+    side = 8.0 * BACKGROUND_DISTANCE  # far wider than any frame's view of it
+    wall = _facing(
+        wall_at,
+        [side, side, 0.0],
+        _photo_material(BACKGROUND_PHOTO, BACKGROUND_PHOTO_SPAN, UPRIGHT),
+        2,
+    )
+    return [disc, wall], _far_box(centre, cam), _fixed_light([0.1, 0.2, 1.0])
+
+
+def horizon_layout(cam: CameraSpec) -> tuple[list[PrimitiveSpec], BoxSpec, LightSpec]:
+    """The "Horizon" scene: a photo-textured horizontal plane HORIZON_HEIGHT m below the first
+    frame's camera (world +y is down, as the camera's y), reaching past the far clip in every
+    direction seen: ground up to the horizon, sky above it. Needs a camera in world axes."""
+    start = np.array(cam.cam2world[0])[:3, 3]
+    ground_at = [float(start[0]), float(start[1]) + HORIZON_HEIGHT, float(start[2])]
+    side = 4.0 * cam.far_clip  # the plane's edge stays beyond the far clip
+    ground = _facing(
+        ground_at,
+        [side, side, 0.0],
+        _photo_material(HORIZON_PHOTO, HORIZON_PHOTO_SPAN, ALONG_VIEW),
+        1,
+    )
+    return [ground], _far_box(start, cam), _fixed_light([0.2, 1.0, 0.5])
+
+
+FIXED_SCENES = {"flower": flower_layout, "horizon": horizon_layout}  # config.FIXED_SCENES
+
+
+def fixed_scene(cfg: DatasetConfig, index: int, cam: CameraSpec) -> SceneSpec:
+    """Scene ``index`` of a dataset of fixed scenes (``objects.fixed``): the same layout,
+    camera path and light for every index and seed; only ``index`` and ``seed`` (hence the
+    placement of anti-aliasing samples) differ. ConfigError if the camera path comes within
+    ``objects.path_clearance`` of a surface (too long a path; cli.build_config checks it before
+    anything is written)."""
+    prims, box, light = FIXED_SCENES[cfg.objects.fixed](cam)
+    if any(path_hits(p, cam, cfg.objects.path_clearance) for p in prims):
+        raise ConfigError(
+            f"camera.displacement: the camera path of the fixed scene '{cfg.objects.fixed}' "
+            f"(objects.fixed) comes within {cfg.objects.path_clearance} m of a surface; "
+            "shorten camera.displacement or camera.frames"
+        )
+    return SceneSpec(
+        index=index,
+        seed=scene_seed(cfg.seed, index),
+        rejected=0,
+        camera=cam,
+        primitives=prims,
+        box=box,
+        light=light,
     )

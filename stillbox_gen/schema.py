@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from .config import SHAPE_KINDS
 from .layout import CHUNK_SIZE
 
 _num = {"type": "number"}
@@ -87,7 +88,7 @@ SCENE_RECORD = {
                 "type": "object",
                 "required": ["kind", "dimensions", "location", "rotation", "material"],
                 "properties": {
-                    "kind": {"enum": ["cube", "sphere", "cone", "torus", "cylinder", "slab"]},
+                    "kind": {"enum": list(SHAPE_KINDS)},
                     "dimensions": _vec3,
                     "location": _vec3,
                     "rotation": _quat,

@@ -8,6 +8,8 @@ Every primitive is described by ``kind`` and ``dimensions`` = its axis-aligned b
 * cylinder: axis local z, radius dx / 2, height dz.
 * cone: axis local z, base of radius dx / 2 at z = -dz/2, apex at z = +dz/2.
 * torus: around local z, major radius R = (dx - dz) / 2, minor radius r = dz / 2.
+* plane: the rectangle dx by dy in the local xy plane (dz = 0), facing local +z; it has no
+  inside (its signed distance is never negative). One two-sided polygon.
 
 The signed distances are exact (negative inside), except that the rendered meshes are inscribed
 polyhedra of the curved shapes, so a point the function calls outside is outside the mesh too.
@@ -50,7 +52,7 @@ def _cone2d(rho: np.ndarray, z: np.ndarray, r: float, h: float) -> np.ndarray:
 def signed_distance(kind: str, dimensions: np.ndarray, p: np.ndarray) -> np.ndarray:
     """Signed distance (metres, < 0 inside) from local-frame points p (N, 3) to the shape."""
     dx, dy, dz = (float(v) for v in dimensions)
-    if kind in ("cube", "slab"):
+    if kind in ("cube", "slab", "plane"):  # a plane: a box of no thickness, nothing inside
         return _box2d(p, np.array([dx, dy, dz]) / 2)
     if kind == "sphere":
         return portable.row_norms(p) - dx / 2
@@ -83,6 +85,8 @@ def _faces(kind: str, n: int) -> tuple[tuple[int, ...], ...]:
     """Faces of a primitive's mesh with ``n`` segments (they do not depend on its dimensions)."""
     if kind in ("cube", "slab"):
         return ((0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3))
+    if kind == "plane":
+        return ((0, 1, 3, 2),)
     if kind == "sphere":
         rings = n // 2
         body = [tuple(1 + k for k in f) for f in _grid_faces(rings - 1, n, False)]
@@ -117,6 +121,9 @@ def mesh(kind: str, dimensions, segments: int = 32) -> tuple[np.ndarray, list[tu
     if kind in ("cube", "slab"):
         v = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], float)
         return v * np.array([dx, dy, dz]) / 2, faces
+    if kind == "plane":  # corners (-,-), (+,-), (-,+), (+,+): face (0, 1, 3, 2) faces +z
+        v = np.array([[x, y, 0.0] for y in (-1, 1) for x in (-1, 1)], float)
+        return v * np.array([dx, dy, 0.0]) / 2, faces
     if kind == "sphere":
         # polar angles pi - 2 pi j / n, j = 1 .. n/2 - 1, bottom ring first: -cos, sin of the circle
         cos_t, sin_t = -ring[1 : n // 2, 0][:, None], ring[1 : n // 2, 1][:, None]
