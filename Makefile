@@ -29,7 +29,7 @@ test-kernels: $(STAMP)
 	tests/old_x86_kernels.sh $(BIN)/python -m pytest -q -p no:cacheprovider
 
 # The main job on a small default: generate 40 scenes at 64 px, check them, train DepthNet
-# briefly on CPU (or GPU), score it and write the report (23-53 s in all on 2 cores).
+# briefly on CPU (or GPU), score it and write the report (21-53 s in all on 2 cores).
 demo: $(STAMP)
 	$(BIN)/stillbox-gen --res 64 --scenes 40 --out data/demo-64
 	$(BIN)/stillbox-gen validate data/demo-64
