@@ -35,7 +35,7 @@ def focal_from_fov(fov_deg: float, width: int) -> float:
 
 def fov_from_focal(focal_px: float, width: int) -> float:
     """Horizontal field of view in degrees for a focal length in pixels."""
-    return math.degrees(2.0 * math.atan(width / (2.0 * focal_px)))
+    return math.degrees(2.0 * portable.atan(width / (2.0 * focal_px)))
 
 
 def centred_principal_point(width: int, height: int) -> tuple[float, float]:

@@ -54,6 +54,11 @@ def tan(x: float) -> float:
     return _unary(libmp.mpf_tan, x)
 
 
+def atan(x: float) -> float:
+    """arctan(x), radians."""
+    return _unary(libmp.mpf_atan, x)
+
+
 def exp(x: float) -> float:
     return _unary(libmp.mpf_exp, x)
 

@@ -24,7 +24,7 @@ from stillbox_gen import camera, portable, shapes
 SCRIPT = """
 import hashlib, json, math, sys
 import numpy as np
-from stillbox_gen import config, formats, layout, shapes
+from stillbox_gen import config, dataset, formats, layout, shapes
 from stillbox_gen.scene import sample_scene
 
 def canary():
@@ -42,6 +42,7 @@ custom = config.replace(
 )
 records = []
 for cfg in (config.load_preset("stillbox"), config.load_preset("stillbox-unstabilised"), custom):
+    records.append(dataset.chunk_args(cfg.to_dict(), "stillbox-gen"))  # metadata.json's args
     for k in range(int(sys.argv[1])):
         spec = sample_scene(cfg, k).to_dict()
         records.append([spec, layout.scene_record(spec, "png", False)])
@@ -123,6 +124,7 @@ def _ulps(a: float, b: float) -> float:
         (portable.sin, math.sin, np.linspace(-7, 7, 301)),
         (portable.cos, math.cos, np.linspace(-7, 7, 301)),
         (portable.tan, math.tan, np.linspace(-1.5, 1.5, 301)),
+        (portable.atan, math.atan, np.linspace(-50, 50, 301)),
         (portable.exp, math.exp, np.linspace(-20, 20, 301)),
         (portable.log, math.log, np.geomspace(1e-6, 1e6, 301)),
         (portable.cbrt, lambda x: math.copysign(abs(x) ** (1 / 3), x), np.linspace(-900, 900, 301)),
