@@ -21,6 +21,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from . import portable
 
@@ -83,7 +84,7 @@ def opencv_to_blender_cam2world(cam2world_cv: np.ndarray) -> np.ndarray:
     return out
 
 
-def pose_matrix(rotation, translation) -> np.ndarray:
+def pose_matrix(rotation: ArrayLike, translation: ArrayLike) -> np.ndarray:
     """4x4 homogeneous matrix from a 3x3 rotation and a 3-vector translation."""
     m = np.eye(4)
     m[:3, :3] = rotation
@@ -91,14 +92,14 @@ def pose_matrix(rotation, translation) -> np.ndarray:
     return m
 
 
-def invert_pose(m) -> np.ndarray:
+def invert_pose(m: ArrayLike) -> np.ndarray:
     """Inverse of a rigid 4x4 transform: [R^T, -R^T t] (portable arithmetic)."""
     m = np.asarray(m, dtype=float)
     rt = portable.transpose(m[:3, :3])
     return pose_matrix(rt, [-x for x in portable.matvec(rt, m[:3, 3])])
 
 
-def quat_to_matrix(q) -> np.ndarray:
+def quat_to_matrix(q: ArrayLike) -> np.ndarray:
     """3x3 rotation matrix of a quaternion [w, x, y, z] (normalised first)."""
     w, x, y, z = portable.normalise(q)
     return np.array(
@@ -110,7 +111,7 @@ def quat_to_matrix(q) -> np.ndarray:
     )
 
 
-def matrix_to_quat(m) -> np.ndarray:
+def matrix_to_quat(m: ArrayLike) -> np.ndarray:
     """Unit quaternion [w, x, y, z] (w >= 0) of a 3x3 rotation matrix."""
     m = [[float(v) for v in row] for row in np.asarray(m, dtype=float)]
     tr = m[0][0] + m[1][1] + m[2][2]
@@ -130,7 +131,7 @@ def matrix_to_quat(m) -> np.ndarray:
     return np.array([-v for v in q] if q[0] < 0 else q)
 
 
-def rotation_vector_to_matrix(v) -> np.ndarray:
+def rotation_vector_to_matrix(v: ArrayLike) -> np.ndarray:
     """Rodrigues: rotation of angle |v| (radians) about axis v / |v|."""
     angle = portable.norm(v)
     if angle < 1e-15:
@@ -154,7 +155,7 @@ def random_unit_vector(rng: np.random.Generator) -> np.ndarray:
     return np.array(portable.normalise(rng.normal(size=3).tolist()))
 
 
-def pixel_ray(K, u: float, v: float) -> list[float]:
+def pixel_ray(K: ArrayLike, u: float, v: float) -> list[float]:
     """K^-1 [u, v, 1] (camera frame, z = 1) by back-substitution on the upper-triangular K."""
     (f, skew, cx), (_, fy, cy) = K[0], K[1]
     y = (v - float(cy)) / float(fy)
