@@ -88,7 +88,8 @@ def _config_of(info: dict) -> config.DatasetConfig | None:
 
 def _first_difference(got, want, path: str) -> tuple[str, object, object] | None:
     """(path, got, want) of the first value that differs between two JSON values (floats
-    within 1e-12 relative, as another machine's libm may round derived angles otherwise)."""
+    within 1e-12 relative: datasets written before stillbox_gen.portable derived their field of
+    view with the machine's libm, which may round the last bit otherwise)."""
     if isinstance(got, dict) and isinstance(want, dict):
         for key in sorted({*got, *want}, key=str):
             if key not in got or key not in want:
