@@ -95,7 +95,7 @@ def check_metadata(ck: dict, where: str) -> None:
     0 <= lo < hi <= MAX_DEPTH; ``camera`` width and height integers >= 1 (pixels) and ``fov_deg``
     in (0, 180) degrees. Otherwise a ValueError of one line naming ``where`` (flag and file) and
     the field."""
-    from stillbox_gen.dataset import MAX_DEPTH
+    from stillbox_gen.conventions import MAX_DEPTH
 
     def bad(field: str, value, rule: str) -> ValueError:
         return ValueError(f"{where}: its '{field}' is {value!r}; it must be {rule}")
@@ -187,7 +187,7 @@ def depth_network(
     method that does not output depth (flow networks) is refused: ValueError of one line naming
     ``flag`` and the file.
     """
-    from stillbox_gen.dataset import MAX_DEPTH
+    from stillbox_gen.conventions import MAX_DEPTH
 
     from .multishift import DepthScale
 

@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING
 
 import click
 
-from stillbox_gen.dataset import MAX_DEPTH, default_root
+from stillbox_gen.conventions import MAX_DEPTH, default_root
 
 from . import registry
 from . import speed as speed_table

@@ -22,7 +22,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from stillbox_gen.dataset import MAX_DEPTH
+from stillbox_gen.conventions import MAX_DEPTH
 
 from . import flow, geometry, metrics, runfolder
 

@@ -32,7 +32,7 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-from stillbox_gen.dataset import MAX_DEPTH
+from stillbox_gen.conventions import MAX_DEPTH
 
 from .metrics import MIN_DEPTH  # depth from flow is clamped to [MIN_DEPTH, MAX_DEPTH] metres
 

@@ -30,7 +30,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from stillbox_gen.dataset import MAX_DEPTH
+from stillbox_gen.conventions import MAX_DEPTH
 
 from . import video
 from .checkpoint import depth_network

@@ -21,7 +21,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from stillbox_gen.dataset import MAX_DEPTH  # metres: predictions clamped, ground truth clipped
+from stillbox_gen.conventions import MAX_DEPTH  # metres: predictions clamped, ground truth clipped
 
 MIN_DEPTH = 0.1  # metres: predictions are clamped up to this before scoring (thesis 3.6.2)
 

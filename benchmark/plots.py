@@ -19,7 +19,7 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from stillbox_gen.dataset import MAX_DEPTH
+from stillbox_gen.conventions import MAX_DEPTH
 
 from . import runfolder
 from .metrics import MIN_DEPTH

@@ -15,7 +15,7 @@ from dataclasses import dataclass, replace
 
 from torch import nn
 
-from stillbox_gen.dataset import MAX_DEPTH, NOMINAL_SHIFT
+from stillbox_gen.conventions import MAX_DEPTH, NOMINAL_SHIFT
 
 from .models import FLOW_DIV, DepthNet, FlowNetS
 

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from stillbox_gen.dataset import MAX_DEPTH, NOMINAL_SHIFT
+from stillbox_gen.conventions import MAX_DEPTH, NOMINAL_SHIFT
 
 from . import metrics, plots, registry, runfolder
 from .evaluate import EvalResult

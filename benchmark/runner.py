@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from stillbox_gen.dataset import MAX_DEPTH, NOMINAL_SHIFT
+from stillbox_gen.conventions import MAX_DEPTH, NOMINAL_SHIFT
 from stillbox_gen.lock import folder_lock
 
 from . import registry, report, runfolder

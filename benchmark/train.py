@@ -30,7 +30,7 @@ import torch
 import torch.nn.functional as F
 from tqdm import tqdm
 
-from stillbox_gen.dataset import MAX_DEPTH
+from stillbox_gen.conventions import MAX_DEPTH
 
 from . import evaluate, registry, runfolder
 from .checkpoint import first_line, load_checkpoint, load_weights

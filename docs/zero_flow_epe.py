@@ -16,7 +16,7 @@ import torch
 
 from benchmark.data import load_scenes
 from benchmark.flow import endpoint_error, flow_from_depth
-from stillbox_gen.dataset import NOMINAL_SHIFT
+from stillbox_gen.conventions import NOMINAL_SHIFT
 
 
 def zero_flow_epe(data: Path, split: str, shift: int = NOMINAL_SHIFT) -> tuple[float, int]:

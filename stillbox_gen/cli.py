@@ -18,7 +18,7 @@ import click
 
 from . import config
 from .config import ConfigError
-from .dataset import MAX_DEPTH, NOMINAL_SHIFT, default_root
+from .conventions import MAX_DEPTH, NOMINAL_SHIFT, default_root
 from .formats import DatasetError, disk_full_message, is_disk_full
 from .workers import Terminated, sigterm_as_interrupt
 
@@ -336,7 +336,7 @@ def parse_shard(value: str) -> tuple[int, int]:
 @click.argument("dataset", type=PathArg())
 def index(dataset: Path) -> None:
     """Index a folder filled by --shard runs: metadata.json, manifest.parquet, dataset.json."""
-    from .dataset import index_dataset
+    from .writer import index_dataset
 
     summary = index_dataset(dataset)
     click.echo(f"{dataset}: indexed {summary.scenes} scenes, {summary.frames} frames")
@@ -599,7 +599,7 @@ def check_out_file(out: Path, flag: str = "--out") -> None:
 
 
 def generate_versions() -> str:
-    from .dataset import versions
+    from .writer import versions
 
     return ", ".join(f"{k} {v}" for k, v in versions().items())
 

@@ -1,7 +1,7 @@
 """File formats of a StillBox-gen dataset (docs/FORMAT.md): depth EXR, 8-bit sRGB frames, JSON
 written atomically, SHA-256 checksums, and the check that a path read from a dataset stays inside
-it. Where each file lives is stillbox_gen.layout; reading and writing whole datasets is
-stillbox_gen.dataset.
+it. Where each file lives is stillbox_gen.layout; writing whole datasets is stillbox_gen.writer,
+reading them stillbox_gen.dataset.
 
 Every path read from a dataset (a record's file names, the manifest's paths) goes through
 :func:`resolve_inside`, so a crafted dataset cannot make a reader open or write a file outside it.

@@ -2,7 +2,7 @@
 scenes in a pool of Blender workers (local processes, or Ray actors with ``--backend ray``),
 commit each scene as it finishes, then index the dataset.
 
-A scene is complete exactly when its record exists (stillbox_gen.dataset.commit_scene), so a
+A scene is complete exactly when its record exists (stillbox_gen.writer.commit_scene), so a
 killed run resumes where it stopped. A worker that dies, or a pool in which no scene finishes
 for ``scene_timeout`` seconds, gets the whole pool replaced and the scenes in flight retried.
 """
@@ -19,7 +19,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from . import dataset, formats, layout
+from . import formats, layout, writer
 from .config import CPU_DEVICE, DatasetConfig
 from .lock import folder_lock
 from .scene import sample_scene
@@ -175,7 +175,7 @@ class _Scheduler:
             self._submit_next()
             return None
         _write_returned_files(self.opts.out / layout.scene_tmp_name(spec["index"]), stats)
-        dataset.commit_scene(self.opts.out, spec, self.cfg)
+        writer.commit_scene(self.opts.out, spec, self.cfg)
         self.on_done(stats)
         self._submit_next()
         return None
@@ -252,7 +252,7 @@ def generate(cfg: DatasetConfig, opts: RunOptions, announce=lambda: None) -> Sum
 
     With ``opts.shard`` = (I, N), only scenes k % N == I are rendered; the folder is indexed
     (metadata, manifest, dataset.json complete) by whichever shard finds every scene present,
-    or later by :func:`dataset.index_dataset`. The result equals an unsharded run with the same
+    or later by :func:`writer.index_dataset`. The result equals an unsharded run with the same
     seed. A second run on the same ``opts.out`` (the same shard, or any shard beside an
     unsharded run) is refused with a FolderInUse error while this one runs (stillbox_gen.lock).
     """
@@ -263,9 +263,9 @@ def generate(cfg: DatasetConfig, opts: RunOptions, announce=lambda: None) -> Sum
 def _generate(cfg: DatasetConfig, opts: RunOptions, announce) -> Summary:
     """:func:`generate` once the folder's lock is held."""
     device = CPU_DEVICE if opts.backend == "ray" else opts.device
-    devices = dataset.prepare_output(opts.out, cfg, opts.scenes, device)
+    devices = writer.prepare_output(opts.out, cfg, opts.scenes, device)
     announce()
-    todo = dataset.pending_indices(opts.out, opts.scenes, opts.shard)
+    todo = writer.pending_indices(opts.out, opts.scenes, opts.shard)
     summary = Summary()
     t0 = time.perf_counter()
     if opts.backend == "ray" and todo:
@@ -285,9 +285,9 @@ def _generate(cfg: DatasetConfig, opts: RunOptions, announce) -> Summary:
         "peak_rss_mb_per_worker": round(summary.peak_rss_mb, 1),
         "failures": summary.failures,
     }
-    if dataset.pending_indices(opts.out, opts.scenes):  # other shards still have work
+    if writer.pending_indices(opts.out, opts.scenes):  # other shards still have work
         return dataclasses.replace(summary, seconds=seconds, scenes=opts.scenes)
-    totals = dataset.finalize(opts.out, cfg, opts.scenes, run_info, devices)
+    totals = writer.finalize(opts.out, cfg, opts.scenes, run_info, devices)
     return dataclasses.replace(
         summary,
         scenes=totals.scenes,

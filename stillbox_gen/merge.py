@@ -19,16 +19,16 @@ from pathlib import Path
 
 from . import config, formats, layout
 from .config import ConfigError
-from .dataset import (
-    Dataset,
+from .dataset import Dataset
+from .formats import DatasetError
+from .lock import folder_lock
+from .writer import (
     Totals,
     index_dataset,
     join_devices,
     pending_indices,
     prepare_output,
 )
-from .formats import DatasetError
-from .lock import folder_lock
 
 
 def _info(folder: Path) -> dict:

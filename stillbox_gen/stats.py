@@ -38,7 +38,8 @@ import numpy as np
 
 from . import formats, layout
 from .config import ConfigError
-from .dataset import MAX_DEPTH, NOMINAL_SHIFT, Dataset
+from .conventions import MAX_DEPTH, NOMINAL_SHIFT
+from .dataset import Dataset
 from .formats import DatasetError
 from .scene import foreign_photos
 

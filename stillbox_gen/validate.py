@@ -126,7 +126,7 @@ RENDER_REQUIRED = RENDER_FROM_CONFIG[:4]
 def _derived_problems(info: dict, cfg: config.DatasetConfig) -> list[str]:
     """dataset.json's fields that its config determines (render settings, frames, splits,
     versions' shape), recomputed from the config and compared."""
-    from .dataset import dataset_info
+    from .writer import dataset_info
 
     problems = []
     render = info["render"] if isinstance(info["render"], dict) else {}
@@ -170,15 +170,15 @@ def _derived_problems(info: dict, cfg: config.DatasetConfig) -> list[str]:
 
 
 def _versions_keys() -> list[str]:
-    """The packages dataset.json's ``versions`` names (dataset.versions)."""
-    from .dataset import versions
+    """The packages dataset.json's ``versions`` names (writer.versions)."""
+    from .writer import versions
 
     return sorted(versions())
 
 
 def _args_problems(info: dict, args: dict, where: str) -> list[str]:
     """A chunk's metadata.json ``args`` against what dataset.json's config and version give."""
-    from .dataset import chunk_args
+    from .writer import chunk_args
 
     version = info["versions"].get("stillbox-gen") if isinstance(info["versions"], dict) else None
     want = chunk_args(info["config"], f"stillbox-gen {version}")

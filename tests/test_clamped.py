@@ -12,7 +12,7 @@ from test_bench import bench
 from benchmark import evaluate, registry
 from benchmark.data import STILL_TARGET, FrameStore, PairDataset, load_scenes
 from benchmark.models import DepthNet, count_parameters
-from stillbox_gen.dataset import MAX_DEPTH, NOMINAL_SHIFT
+from stillbox_gen.conventions import MAX_DEPTH, NOMINAL_SHIFT
 
 
 def test_clamped_networks_are_registered_with_the_thesis_recipe():

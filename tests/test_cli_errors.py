@@ -242,7 +242,7 @@ def test_bench_resolution_beyond_the_limit_is_refused():
 
 def test_validate_refuses_a_scene_count_beyond_the_limit_without_looping(tmp_path):
     """A dataset.json claiming 10^12 scenes is reported at once, not walked chunk by chunk."""
-    from stillbox_gen.dataset import dataset_info
+    from stillbox_gen.writer import dataset_info
 
     info = dataset_info(config.DatasetConfig(), 10**12, complete=True)
     info.update(frames=10**13, rejected_scenes=0, split_scenes={}, run={})

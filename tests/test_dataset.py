@@ -1,4 +1,4 @@
-"""stillbox_gen.dataset: the lifecycle (commit, finalize) and the one reader (Dataset), on a
+"""stillbox_gen.writer (commit, finalize) and stillbox_gen.dataset (the one reader), on a
 dataset written without Blender (synthetic frames) and on a rendered one, and the README's
 Python API example run as written."""
 
@@ -11,7 +11,7 @@ import cv2
 import numpy as np
 import pytest
 
-from stillbox_gen import config, dataset, layout, manifest
+from stillbox_gen import config, layout, manifest, writer
 from stillbox_gen.dataset import Dataset
 from stillbox_gen.formats import DatasetError, write_depth_exr
 from stillbox_gen.scene import sample_scene
@@ -42,15 +42,15 @@ def fake(tmp_path_factory) -> tuple[Path, config.DatasetConfig]:
     out = tmp_path_factory.mktemp("fake") / "ds"
     camera = {"width": W, "height": H, "frames": FRAMES}
     cfg = config.replace(config.load_preset("stillbox"), camera=camera)
-    dataset.prepare_output(out, cfg, SCENES)
-    for k in dataset.pending_indices(out, SCENES):
+    writer.prepare_output(out, cfg, SCENES)
+    for k in writer.pending_indices(out, SCENES):
         spec = sample_scene(cfg, k).to_dict()
         tmp = out / layout.scene_tmp_name(k)
         tmp.mkdir(parents=True)
         record = layout.scene_record(spec, cfg.render.image_format, cfg.render.legacy)
         _fake_frames(tmp, record, k)
-        dataset.commit_scene(out, spec, cfg)
-    totals = dataset.finalize(out, cfg, SCENES, {"by": "test_dataset"})
+        writer.commit_scene(out, spec, cfg)
+    totals = writer.finalize(out, cfg, SCENES, {"by": "test_dataset"})
     assert totals.scenes == SCENES and totals.frames == SCENES * FRAMES
     return out, cfg
 

@@ -120,7 +120,7 @@ def test_relative_imports_resolve_to_modules(tmp_path):
 def test_the_graph_sees_the_known_edges():
     """A sanity check of the walk itself: edges that must be there."""
     graph = import_graph()
-    assert "stillbox_gen.dataset" in graph["stillbox_gen.generate"]
+    assert "stillbox_gen.writer" in graph["stillbox_gen.generate"]
     assert "stillbox_gen.workers" in graph["stillbox_gen.ray_pool"]
     assert "stillbox_gen.blender.render" in graph["stillbox_gen.workers"]  # in a function
     assert "stillbox_gen.dataset" in graph["benchmark.data"]

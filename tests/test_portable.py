@@ -24,7 +24,7 @@ from stillbox_gen import camera, portable, shapes
 SCRIPT = """
 import hashlib, json, math, sys
 import numpy as np
-from stillbox_gen import config, dataset, formats, layout, shapes
+from stillbox_gen import config, formats, layout, shapes, writer
 from stillbox_gen.scene import sample_scene
 
 def canary():
@@ -42,7 +42,7 @@ custom = config.replace(
 )
 records = []
 for cfg in (config.load_preset("stillbox"), config.load_preset("stillbox-unstabilised"), custom):
-    records.append(dataset.chunk_args(cfg.to_dict(), "stillbox-gen"))  # metadata.json's args
+    records.append(writer.chunk_args(cfg.to_dict(), "stillbox-gen"))  # metadata.json's args
     for k in range(int(sys.argv[1])):
         spec = sample_scene(cfg, k).to_dict()
         records.append([spec, layout.scene_record(spec, "png", False)])

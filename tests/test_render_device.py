@@ -17,7 +17,7 @@ import sys
 import pytest
 from conftest import assert_user_error, invoke_cli, run_cli
 
-from stillbox_gen import bench, config, dataset, workers
+from stillbox_gen import bench, config, workers, writer
 
 NO_GPU = not any(glob.glob(p) for p in ("/dev/nvidia*", "/dev/kfd", "/dev/dri"))
 cpu_only = pytest.mark.skipif(not NO_GPU, reason="this machine has a GPU device node")
@@ -99,12 +99,12 @@ def test_a_resume_on_another_device_is_accepted_and_recorded(tmp_path):
     then names both devices, in order of use (stands in for a GPU run: nothing renders)."""
     cfg = config.replace(config.DatasetConfig(), camera={"width": 16, "height": 16})
     out = tmp_path / "ds"
-    assert dataset.prepare_output(out, cfg, 2, "CUDA") == "CUDA"
-    assert dataset.prepare_output(out, cfg, 2, "CPU") == "CUDA + CPU"
-    assert dataset.prepare_output(out, cfg, 3, "CUDA") == "CUDA + CPU"
+    assert writer.prepare_output(out, cfg, 2, "CUDA") == "CUDA"
+    assert writer.prepare_output(out, cfg, 2, "CPU") == "CUDA + CPU"
+    assert writer.prepare_output(out, cfg, 3, "CUDA") == "CUDA + CPU"
     info = json.loads((out / "dataset.json").read_text())
     assert info["render"]["device"] == "CUDA + CPU" and info["fingerprint"] == cfg.fingerprint()
-    assert dataset.join_devices(None) == "CPU" and dataset.join_devices("CPU", "CPU") == "CPU"
+    assert writer.join_devices(None) == "CPU" and writer.join_devices("CPU", "CPU") == "CPU"
 
 
 def test_worker_set_up_uses_the_cpu_and_refuses_a_missing_gpu():
