@@ -13,7 +13,7 @@ import jsonschema  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
-from stillbox_gen import config, dataset, formats, layout, manifest, schema  # noqa: E402
+from stillbox_gen import config, formats, layout, manifest, schema, writer  # noqa: E402
 from stillbox_gen.scene import sample_scene  # noqa: E402
 
 ORIGINAL_KEYS = ["imgs", "depth", "speed", "time_step", "length", "orientation"]
@@ -193,7 +193,7 @@ def test_scene_checksums_cover_every_scene_file(tmp_path, spec):
     )
     for i, name in enumerate(names):
         (tmp_path / name).write_bytes(bytes([i]))
-    sums = dataset.scene_checksums(tmp_path, rec)
+    sums = writer.scene_checksums(tmp_path, rec)
     assert sums == {n: hashlib.sha256(bytes([i])).hexdigest() for i, n in enumerate(names)}
 
 
