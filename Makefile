@@ -5,12 +5,12 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: install test test-kernels lint demo bench-gen golden clean
+.PHONY: install test test-kernels test-bench-only lint demo bench-gen golden clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
-	$(BIN)/pip install --quiet -e '.[dev,ray]'
+	$(BIN)/pip install --quiet -e '.[gen,bench,dev,ray]'
 	touch $(STAMP)
 
 install: $(STAMP)
@@ -22,11 +22,24 @@ lint: $(STAMP)
 test: $(STAMP) lint
 	$(BIN)/python -m pytest -q --durations=5
 	$(MAKE) --no-print-directory test-kernels
+	$(MAKE) --no-print-directory test-bench-only
 
 # The suite again under an old x86-64's CPU kernels (OpenBLAS, numpy SIMD, ATen, oneDNN, libm):
 # what must not depend on the machine does not (README: Same results on every machine).
 test-kernels: $(STAMP)
 	tests/old_x86_kernels.sh $(BIN)/python -m pytest -q -p no:cacheprovider
+
+# The reader and the benchmark without Blender: a venv with the `bench` extra only (no bpy) runs
+# every test that neither renders nor needs bpy (markers render, blender); tests/test_packaging.py checks that bpy is really absent there.
+BENCH_VENV := .venv-bench
+$(BENCH_VENV)/.installed: pyproject.toml
+	$(PYTHON) -m venv $(BENCH_VENV)
+	$(BENCH_VENV)/bin/pip install --quiet --upgrade pip
+	$(BENCH_VENV)/bin/pip install --quiet -e '.[bench,dev]'
+	touch $@
+
+test-bench-only: $(BENCH_VENV)/.installed
+	STILLBOX_EXPECT_NO_BPY=1 $(BENCH_VENV)/bin/python -m pytest -q -p no:cacheprovider -m "not render and not blender"
 
 # The main job on a small default: generate 40 scenes at 64 px, check them, train DepthNet
 # briefly on CPU (or GPU), score it and write the report (21-53 s in all on 2 cores).
@@ -48,4 +61,4 @@ golden: $(STAMP)
 	git status --short tests/golden; git diff --stat tests/golden
 
 clean:
-	rm -rf $(VENV) data/demo-64 data/demo-64-preview.png runs/demo-depthnet .pytest_cache .ruff_cache
+	rm -rf $(VENV) $(BENCH_VENV) data/demo-64 data/demo-64-preview.png runs/demo-depthnet .pytest_cache .ruff_cache

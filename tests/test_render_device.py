@@ -25,6 +25,7 @@ TINY = ["--res", 16, "--scenes", 1, "--frames", 2, "--workers", 1, "--quiet"]
 
 
 @cpu_only
+@pytest.mark.blender
 def test_blender_finds_no_gpu_backend_here():
     assert workers.find_gpus() == {}
     assert workers.choose_device("auto") == (
@@ -35,6 +36,7 @@ def test_blender_finds_no_gpu_backend_here():
 
 
 @cpu_only
+@pytest.mark.blender
 @pytest.mark.parametrize("device", ["cuda", "optix", "hip"])
 def test_gpu_backend_without_device_is_a_one_line_error_and_writes_nothing(tmp_path, device):
     out = tmp_path / "out"
@@ -46,6 +48,7 @@ def test_gpu_backend_without_device_is_a_one_line_error_and_writes_nothing(tmp_p
 
 
 @cpu_only
+@pytest.mark.blender
 def test_gpu_error_end_to_end_keeps_blender_warnings_off_stderr(tmp_path):
     """Cycles prints CUEW/HIPEW warnings while it looks: they stay in the detection subprocess."""
     out = tmp_path / "out"
@@ -107,6 +110,7 @@ def test_a_resume_on_another_device_is_accepted_and_recorded(tmp_path):
     assert writer.join_devices(None) == "CPU" and writer.join_devices("CPU", "CPU") == "CPU"
 
 
+@pytest.mark.blender
 def test_worker_set_up_uses_the_cpu_and_refuses_a_missing_gpu():
     """The workers' own check (blender.devices.use_device), behind the driver's."""
     code = (

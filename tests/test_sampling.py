@@ -448,6 +448,7 @@ def test_bundled_photos_are_used_without_a_textures_folder(cfg, scenes):
         config.validate(config.replace(cfg, materials={"photos": "web"}))
 
 
+@pytest.mark.blender  # the photos ship inside the bpy wheel
 def test_bundled_photos_load_as_tone_mapped_reflectance():
     """Each of the 8 panoramas ships with bpy and maps to [0, 1] around the chosen middle grey."""
     from stillbox_gen import photos

@@ -1,0 +1,39 @@
+"""Packaging: the generator's and the benchmark's dependencies are extras of one distribution,
+so that the reader and the benchmark install (and run) without Blender.
+
+`make test` runs the suite in .venv (both extras), then `make test-bench-only` runs every test
+that neither renders nor needs bpy in .venv-bench (the `bench` extra only) with
+STILLBOX_EXPECT_NO_BPY=1: there the first test below proves bpy really is absent, so the rest of
+that run proves the reader and the benchmark work without it.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+import re
+import tomllib
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _names(requirements: list[str]) -> set[str]:
+    """Distribution names of PEP 508 requirement strings, lower case."""
+    return {re.match(r"[A-Za-z0-9_.-]+", r).group(0).lower() for r in requirements}
+
+
+def test_bpy_is_installed_exactly_when_expected():
+    """.venv has Blender (the `gen` extra); .venv-bench must not, or its run proves nothing."""
+    expect_absent = os.environ.get("STILLBOX_EXPECT_NO_BPY") == "1"
+    assert (importlib.util.find_spec("bpy") is None) == expect_absent
+
+
+def test_blender_and_torch_are_extras_not_base_dependencies():
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    base = _names(project["dependencies"])
+    extras = {k: _names(v) for k, v in project["optional-dependencies"].items()}
+    assert not base & {"bpy", "torch", "kornia", "tensorboard"}
+    assert extras["gen"] == {"bpy"}
+    assert {"torch", "kornia", "tensorboard"} <= extras["bench"]
+    assert "bpy" not in extras["bench"]
