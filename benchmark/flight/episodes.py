@@ -2,8 +2,9 @@
 
 Episode ``k`` of seed ``s`` is StillBox scene ``k`` of :func:`flight_scene_config` (seed ``s``)
 and a horizontal straight segment of ``EpisodeConfig.distance`` metres drawn from the stream
-``SeedSequence([s, k, EPISODE_STREAM])``: its middle near a randomly chosen primitive (so at
-least one obstacle lies on or near the straight line), start and goal clear of every surface.
+``SeedSequence([s, k, EPISODE_STREAM])``: its middle near a randomly chosen primitive, redrawn
+until some obstacle lies on (by default: across) the straight line and start and goal are clear
+of every surface.
 Nothing depends on the depth source, so every source flies the same episodes.
 """
 
@@ -47,12 +48,13 @@ def flight_scene_config(seed: int = 0, width: int = 64, height: int = 64) -> Dat
 class EpisodeConfig:
     """``distance``: start to goal (m); ``clearance``: least distance (m) of start and goal
     from any surface; ``near``: the straight segment passes within this distance (m) of an
-    obstacle (or through it); ``lateral``, ``vertical``: largest offsets (m) of the segment's
-    middle from the chosen primitive's centre; ``attempts``: draws before giving up."""
+    obstacle, or through it (0, the default: flying straight collides); ``lateral``,
+    ``vertical``: largest offsets (m) of the segment's middle from the chosen primitive's
+    centre; ``attempts``: draws before giving up."""
 
     distance: float = 20.0
     clearance: float = 2.0
-    near: float = 0.5
+    near: float = 0.0
     lateral: float = 1.0
     vertical: float = 0.5
     attempts: int = 500
