@@ -11,12 +11,14 @@ to the goal), plus "stop" (target velocity 0). A candidate is feasible when none
 positions (braking tail included) comes within ``safety_radius`` of an obstacle point. Among the
 feasible ones it takes the least cost
 
-    w_goal |p_H - goal| + w_line mean_k dist(p_k, line) + w_near mean_k max(0, s + m - d_k)^2
+    w_goal min_k |p_k - goal| + w_line mean_k dist(p_k, line) + w_near mean_k max(0, s + m - d_k)^2
     + w_change |target - v|^2
 
-(p_k: predicted positions of the plan, H its last, d_k their distance to the nearest point, s the
-safety radius, m ``near_margin``). With no feasible candidate it takes the one whose trajectory
-keeps farthest from the points. It returns the first acceleration of the chosen plan.
+(p_k: predicted positions of the plan, k = 1 .. horizon; the first term rewards progress, and
+near the goal flying through it rather than stopping short; d_k: their distance to the nearest
+point, s the safety radius, m ``near_margin``). With no feasible candidate it takes the one
+whose trajectory keeps farthest from the points. It returns the first acceleration of the chosen
+plan.
 """
 
 from __future__ import annotations
@@ -123,7 +125,7 @@ def plan(
     least = dist.min(axis=1)
     plan_part = slice(0, cfg.horizon)
     cost = (
-        cfg.w_goal * np.linalg.norm(traj[:, cfg.horizon - 1] - goal, axis=-1)
+        cfg.w_goal * np.linalg.norm(traj[:, plan_part] - goal, axis=-1).min(axis=1)
         + cfg.w_line * line_distances(traj[:, plan_part], start, goal).mean(axis=1)
         + cfg.w_near
         * (np.maximum(0.0, cfg.safety_radius + cfg.near_margin - dist[:, plan_part]) ** 2).mean(1)
