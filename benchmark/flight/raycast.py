@@ -4,6 +4,8 @@ Rays through the pixel centres of K (OpenCV) from the camera pose meet the walls
 exit of the axis-aligned box) and the primitives by sphere tracing on their exact signed
 distances (shapes.py), which supports every primitive kind. Depth is planar (along the optical
 axis, as Cycles' Z pass); a ray that meets nothing within ``max_distance`` gets MISS_DEPTH.
+A ray stops within HIT_TOLERANCE of a surface: exact to that but at the silhouette of a curved
+surface of radius R, where a grazing ray stops up to sqrt(2 R HIT_TOLERANCE) early (nearer).
 """
 
 from __future__ import annotations
