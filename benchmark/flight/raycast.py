@@ -36,11 +36,27 @@ def box_exit(world: World, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
     return t.min(axis=1)
 
 
-def primitive_distance(world: World, points: np.ndarray) -> np.ndarray:
-    """Least signed distance (m) from points (N, 3) to the primitives (inf with none)."""
+def bounding_hits(world: World, origin: np.ndarray, unit: np.ndarray) -> np.ndarray:
+    """(N, M) bool: ray n (unit direction) meets the bounding sphere of primitive m ahead."""
+    out = np.zeros((len(unit), len(world.obstacles)), bool)
+    for m, obstacle in enumerate(world.obstacles):
+        oc = obstacle.location - origin
+        along = unit @ oc
+        miss2 = (oc @ oc) - along**2  # squared distance from the centre to the ray's line
+        r = obstacle.bounding_radius
+        out[:, m] = (miss2 <= r * r) & (along + r >= 0)
+    return out
+
+
+def primitive_distance(world: World, points: np.ndarray, near: np.ndarray) -> np.ndarray:
+    """Least signed distance (m) from points (N, 3) to the primitives whose bounding sphere
+    their ray meets (``near`` (N, M)); inf for none. Leaving the others out is safe: the ray
+    never enters them, so a step past their distance cannot cross them."""
     best = np.full(len(points), np.inf)
-    for obstacle in world.obstacles:
-        best = np.minimum(best, obstacle.signed_distance(points))
+    for m, obstacle in enumerate(world.obstacles):
+        sel = np.flatnonzero(near[:, m])
+        if len(sel):
+            best[sel] = np.minimum(best[sel], obstacle.signed_distance(points[sel]))
     return best
 
 
@@ -62,11 +78,12 @@ def render_depth(
     t = np.zeros(len(unit))
     active = np.ones(len(unit), bool)
     hit = np.zeros(len(unit), bool)
+    near = bounding_hits(world, cam2world[:3, 3], unit)
     for _ in range(MAX_ITERATIONS):
         idx = np.flatnonzero(active)
         if len(idx) == 0:
             break
-        d = primitive_distance(world, origin[idx] + t[idx, None] * unit[idx])
+        d = primitive_distance(world, origin[idx] + t[idx, None] * unit[idx], near[idx])
         hit[idx[d < HIT_TOLERANCE]] = True
         t[idx] += np.maximum(d, 0.0)
         active[idx[(d < HIT_TOLERANCE) | (t[idx] >= t_far[idx])]] = False
