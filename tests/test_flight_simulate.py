@@ -94,6 +94,8 @@ def test_no_obstacle_reaches_the_goal_with_every_source(source):
     assert r.path_ratio == pytest.approx(1.0, abs=0.02)
     assert len(seen) == r.steps  # one render per control step, at the drone's pose
     assert all(np.allclose(p[:3, 2], [1, 0, 0]) for p in seen)  # facing the goal, level
+    again = simulate.fly(world_of(), START, GOAL, K, renderer(world_of()), depth)
+    assert np.array_equal(again.positions, r.positions)  # deterministic
 
 
 def wall_across(x: float = 8.0) -> Obstacle:

@@ -5,9 +5,10 @@ At each control step, from the drone's state (world frame, +Z up) it predicts wi
 model of dynamics.py one trajectory per candidate: a constant target velocity, tracked for
 ``horizon`` steps, followed by a full brake to rest (so a chosen plan always ends in a safe stop).
 Candidates: the direction to the goal turned by ``yaw_offsets`` (about world Z) and
-``pitch_offsets`` (elevation), within the camera's view so the drone flies into space it has
-seen, at each of ``speed_fractions`` of the desired speed min(max_speed, sqrt(2 a d)) (d: distance
-to the goal), plus "stop" (target velocity 0). A candidate is feasible when none of its predicted
+``pitch_offsets`` (elevation), at most 44 deg from it by default: the camera faces the goal's
+heading (simulate.py), so the drone flies into the space its 90 deg view has seen; each at
+``speed_fractions`` of the desired speed min(max_speed, sqrt(2 a d)) (d: distance to the goal);
+plus "stop" (target velocity 0). A candidate is feasible when none of its predicted
 positions (braking tail included) comes within ``safety_radius`` of an obstacle point. Among the
 feasible ones it takes the least cost
 
