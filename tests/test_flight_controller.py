@@ -6,7 +6,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from benchmark.flight.controller import ControllerConfig, line_distances, nearest_distances, plan
+from benchmark.flight.controller import (
+    ControllerConfig,
+    line_distances,
+    nearest_distances,
+    plan,
+)
 from benchmark.flight.dynamics import DroneState, DynamicsConfig, step
 
 DYN = DynamicsConfig()
@@ -105,3 +110,19 @@ def test_inside_the_safety_radius_it_does_not_move_closer():
     assert not p.feasible
     assert p.clearance == pytest.approx(0.5)
     assert np.linalg.norm(p.accel) == pytest.approx(0.0)
+
+
+def test_a_wide_obstacle_beyond_the_horizon_is_turned_around_early():
+    """A 6 m wide post 12 m ahead: without the cost-to-go the drone would close in until the
+    straight plan fails, too near for any turn within the view; with it, it turns while far."""
+    g = np.arange(-3.0, 3.01, 0.4)
+    h = np.arange(-10.0, 10.01, 0.4)
+    y, z = np.meshgrid(g, h)
+    post = np.concatenate(
+        [np.stack([np.full(y.size, 12.0 + dx), y.ravel(), z.ravel()], 1) for dx in (-0.5, 0.5)]
+    )
+    path, _ = fly_points(post, goal=np.array([20.0, 0.0, 0.0]), steps=250)
+    assert np.linalg.norm(path[-1] - [20.0, 0, 0]) < 0.5
+    assert brute_force_clearance(path, post) > CTRL.safety_radius
+    turned = np.flatnonzero(np.abs(path[:, 1]) > 0.1)[0]
+    assert path[turned, 0] < 12.0 - 3.0 - 2 * CTRL.safety_radius  # turned well before it

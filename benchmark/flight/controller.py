@@ -12,12 +12,15 @@ plus "stop" (target velocity 0). A candidate is feasible when none of its predic
 positions (braking tail included) comes within ``safety_radius`` of an obstacle point. Among the
 feasible ones it takes the least cost
 
-    w_goal min_k |p_k - goal| + w_line mean_k dist(p_k, line) + w_near mean_k max(0, s + m - d_k)^2
+    w_goal togo(p_*) + w_line mean_k dist(p_k, line) + w_near mean_k max(0, s + m - d_k)^2
     + w_change |target - v|^2
 
-(p_k: predicted positions of the plan, k = 1 .. horizon; the first term rewards progress, and
-near the goal flying through it rather than stopping short; d_k: their distance to the nearest
-point, s the safety radius, m ``near_margin``). With no feasible candidate it takes the one
+(p_k: predicted positions of the plan, k = 1 .. horizon; p_* the one nearest the goal, so that
+near the goal the drone flies through it rather than stopping short; togo: the length of a
+short clear way from there to the goal around the seen points, detour.py, a cost-to-go that
+makes the drone turn early, towards the shorter side, rather than stop in front of an obstacle
+beyond the horizon; d_k: their distance to the nearest point, s the safety radius, m
+``near_margin``). With no feasible candidate it takes the one
 whose trajectory keeps farthest from the points. It returns the first acceleration of the chosen
 plan.
 """
@@ -29,7 +32,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .detour import cost_to_go, via_points
 from .dynamics import DroneState, DynamicsConfig, accel_towards, rollout
+from .obstacles import voxel_filter
 
 DEFAULT_YAW_OFFSETS = tuple(math.radians(d) for d in (-40, -30, -20, -10, 0, 10, 20, 30, 40))
 DEFAULT_PITCH_OFFSETS = tuple(math.radians(d) for d in (-20, 0, 20))
@@ -49,6 +54,8 @@ class ControllerConfig:
     w_line: float = 0.3
     w_near: float = 5.0
     w_change: float = 0.05
+    corridor: float = 1.5  # m kept from the points by the cost-to-go's ways
+    coarse_voxel: float = 0.5  # m, points thinned to one per cube of this side for the ways
 
 
 @dataclass(frozen=True)
@@ -95,9 +102,9 @@ def nearest_distances(trajectory: np.ndarray, points: np.ndarray, chunk: int = 4
 
 
 def line_distances(x: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Distance (m) from positions (..., 3) to the segment a-b."""
+    """Distance (m) from positions (..., 3) to the segment a-b (a, b (3,) or broadcastable)."""
     ab = b - a
-    t = np.clip(((x - a) @ ab) / max(float(ab @ ab), 1e-12), 0.0, 1.0)
+    t = np.clip(((x - a) * ab).sum(-1) / np.maximum((ab * ab).sum(-1), 1e-12), 0.0, 1.0)
     return np.linalg.norm(x - (a + t[..., None] * ab), axis=-1)
 
 
@@ -123,10 +130,15 @@ def plan(
     reach = np.linalg.norm(traj - state.position, axis=-1).max() + cfg.safety_radius + 1.0
     near_pts = points[np.linalg.norm(points - state.position, axis=1) <= reach]
     dist = nearest_distances(traj, near_pts)
-    least = dist.min(axis=1)
     plan_part = slice(0, cfg.horizon)
+    coarse = voxel_filter(points, cfg.coarse_voxel)
+    vias = via_points(state.position, goal, coarse, cfg.corridor)
+    nearest = np.linalg.norm(traj[:, plan_part] - goal, axis=-1).argmin(axis=1)
+    ends = traj[np.arange(len(traj)), nearest]
+    togo = cost_to_go(ends, goal, vias, coarse, cfg.corridor)
+    least = dist.min(axis=1)
     cost = (
-        cfg.w_goal * np.linalg.norm(traj[:, plan_part] - goal, axis=-1).min(axis=1)
+        cfg.w_goal * togo
         + cfg.w_line * line_distances(traj[:, plan_part], start, goal).mean(axis=1)
         + cfg.w_near
         * (np.maximum(0.0, cfg.safety_radius + cfg.near_margin - dist[:, plan_part]) ** 2).mean(1)
