@@ -84,10 +84,18 @@ def test_voxel_filter_keeps_one_point_per_cube():
     assert kept.tolist() == [pts[0].tolist(), pts[2].tolist(), pts[3].tolist()]
 
 
-def test_memory_forgets_old_frames():
-    mem = PointMemory(SensingConfig(stride=4, memory=2))
-    pose = camera_pose(np.zeros(3), 0.0)
-    for d in (3.0, 5.0, 9.0):
-        mem.add(np.full((H, W), d), K, pose)
-    xs = np.unique(np.round(mem.points()[:, 0], 6))  # world x = depth (yaw 0)
-    assert xs.tolist() == [5.0, 9.0]
+def test_memory_keeps_keyframes_by_distance_moved():
+    """Keyframes every 0.3 m at most 2 kept, plus the current frame; at rest, frames seen
+    while coming are not forgotten. The wall at depth d from x is at world x + d (yaw 0)."""
+    mem = PointMemory(SensingConfig(stride=4, keyframes=2, keyframe_spacing=0.3))
+
+    def wall_xs():
+        return np.unique(np.round(mem.points()[:, 0], 6)).tolist()
+
+    for x, d in [(0.0, 3.0), (0.1, 4.9), (0.5, 5.5), (1.0, 8.0)]:
+        mem.add(np.full((H, W), d), K, camera_pose(np.array([x, 0.0, 0.0]), 0.0))
+    # keyframes at x = 0 (wall 3), 0.5 (wall 6), 1.0 (wall 9): the first dropped; 0.1 not kept
+    assert wall_xs() == [6.0, 9.0]
+    for _ in range(30):  # at rest, seeing a wall at 10
+        mem.add(np.full((H, W), 9.0), K, camera_pose(np.array([1.0, 0.0, 0.0]), 0.0))
+    assert wall_xs() == [6.0, 9.0, 10.0]

@@ -20,14 +20,16 @@ from stillbox_gen import camera
 @dataclass(frozen=True)
 class SensingConfig:
     """``max_range`` (m): farther depths are ignored; ``stride`` (pixels) between samples;
-    ``voxel`` (m): the memory keeps one point per cube of this side; ``memory`` (steps): how
-    many past frames' points are kept (the camera looks ahead only, obstacles being passed
-    leave its view)."""
+    ``voxel`` (m): the memory keeps one point per cube of this side; ``keyframes``: how many
+    past frames' points are kept, a frame being kept when the camera has moved
+    ``keyframe_spacing`` (m) since the last kept one (the camera looks ahead only: obstacles
+    being passed leave its view, and a drone at rest must not forget what it saw coming)."""
 
     max_range: float = 15.0
     stride: int = 2
     voxel: float = 0.2
-    memory: int = 20
+    keyframes: int = 20
+    keyframe_spacing: float = 0.3
 
 
 def camera_points(depth: np.ndarray, K: np.ndarray, stride: int, max_range: float) -> np.ndarray:
@@ -53,21 +55,25 @@ def voxel_filter(points: np.ndarray, voxel: float) -> np.ndarray:
 
 
 class PointMemory:
-    """World points of the last ``cfg.memory`` frames, voxel-filtered."""
+    """World points of the current frame and of the last ``cfg.keyframes`` keyframes."""
 
     def __init__(self, cfg: SensingConfig) -> None:
         self.cfg = cfg
-        self.frames: list[np.ndarray] = []
+        self.keyframes: list[tuple[np.ndarray, np.ndarray]] = []  # (camera position, points)
+        self.current = np.empty((0, 3))
 
     def add(self, depth: np.ndarray, K: np.ndarray, cam2world: np.ndarray) -> np.ndarray:
         """Adds a frame's points; returns them (world, (N, 3))."""
         pts = camera_points(depth, K, self.cfg.stride, self.cfg.max_range)
-        pts = voxel_filter(to_world(pts, cam2world), self.cfg.voxel)
-        self.frames = [*self.frames, pts][-self.cfg.memory :]
-        return pts
+        self.current = voxel_filter(to_world(pts, cam2world), self.cfg.voxel)
+        position = cam2world[:3, 3]
+        last = self.keyframes[-1][0] if self.keyframes else None
+        if last is None or np.linalg.norm(position - last) >= self.cfg.keyframe_spacing:
+            self.keyframes = [*self.keyframes, (position, self.current)][-self.cfg.keyframes :]
+        return self.current
 
     def points(self) -> np.ndarray:
         """Every kept point (world, (N, 3))."""
-        if not self.frames:
-            return np.empty((0, 3))
-        return voxel_filter(np.concatenate(self.frames), self.cfg.voxel)
+        return voxel_filter(
+            np.concatenate([self.current, *(p for _, p in self.keyframes)]), self.cfg.voxel
+        )
