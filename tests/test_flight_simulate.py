@@ -125,6 +125,29 @@ def test_a_post_on_the_line_is_flown_around_with_oracle_depth():
     assert c.outcome == "collided"
 
 
+def test_yaw_modes_face_the_goal_or_keep_the_line():
+    """Round a post: "line" keeps one orientation (pure translation between frames); "goal"
+    turns the camera towards the goal as the drone drifts, within the yaw-rate limit."""
+    post = Obstacle("cylinder", np.array([1.5, 1.5, 60.0]), np.array([7.0, 0.3, 0]), np.eye(3))
+    w = world_of(post)
+    rotations = {}
+    for mode in simulate.YAW_MODES:
+        seen: list = []
+        cfg = simulate.FlightConfig(yaw=mode)
+        r = simulate.fly(w, START, GOAL, K, renderer(w, seen), simulate.oracle, cfg)
+        assert r.outcome == "reached"
+        rotations[mode] = np.array([p[:3, :3] for p in seen])
+    assert np.abs(rotations["line"] - rotations["line"][0]).max() == 0
+    yaws = np.arctan2(rotations["goal"][:, 1, 2], rotations["goal"][:, 0, 2])
+    assert np.abs(yaws).max() > 0.05  # it turned
+    limit = simulate.FlightConfig().dynamics.max_yaw_rate * simulate.FlightConfig().dynamics.dt
+    assert np.abs(np.diff(yaws)).max() <= limit + 1e-9
+    with pytest.raises(ValueError, match="yaw"):
+        simulate.fly(
+            w, START, GOAL, K, renderer(w), simulate.oracle, simulate.FlightConfig(yaw="x")
+        )
+
+
 def test_a_generated_episode_end_to_end():
     """Episodes block the straight line: constant depth crashes, oracle depth gets through."""
     e = make_episode(0, 0, scene_cfg=flight_scene_config(width=RES, height=RES))

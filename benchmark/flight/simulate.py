@@ -27,6 +27,7 @@ Render = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
 #: far (oldest first, the current one last, at most HISTORY), the current frame's true depth.
 DepthSource = Callable[[Sequence[np.ndarray], np.ndarray, Sequence[np.ndarray]], np.ndarray]
 HISTORY = 8
+YAW_MODES = ("goal", "line")
 
 
 def oracle(rgb_history, true_depth, poses) -> np.ndarray:
@@ -43,7 +44,9 @@ def constant(value: float) -> DepthSource:
 @dataclass(frozen=True)
 class FlightConfig:
     """``drone_radius`` (m): the collision sphere; ``reach_radius`` (m) around the goal;
-    ``max_steps``: control steps before "timeout"."""
+    ``max_steps``: control steps before "timeout"; ``yaw``: the camera faces the goal from
+    where the drone is ("goal", turning at most max_yaw_rate), or keeps the heading of the
+    straight line start-goal ("line": frames differ by a pure translation, as StillBox's)."""
 
     dynamics: DynamicsConfig = field(default_factory=DynamicsConfig)
     controller: ControllerConfig = field(default_factory=ControllerConfig)
@@ -51,6 +54,7 @@ class FlightConfig:
     drone_radius: float = 0.25
     reach_radius: float = 1.0
     max_steps: int = 300
+    yaw: str = "goal"
 
 
 @dataclass
@@ -85,8 +89,11 @@ def fly(
     cfg: FlightConfig = FlightConfig(),  # noqa: B008 (frozen)
 ) -> EpisodeResult:
     """One episode from ``start`` at rest, camera facing the goal."""
+    if cfg.yaw not in YAW_MODES:
+        raise ValueError(f"yaw must be one of {YAW_MODES}, got {cfg.yaw!r}")
     start, goal = np.asarray(start, float), np.asarray(goal, float)
-    state = DroneState(start, np.zeros(3), heading(start, goal, 0.0))
+    line_yaw = heading(start, goal, 0.0)
+    state = DroneState(start, np.zeros(3), line_yaw)
     memory = PointMemory(cfg.sensing)
     rgbs: deque = deque(maxlen=HISTORY)
     poses: deque = deque(maxlen=HISTORY)
@@ -105,7 +112,7 @@ def fly(
         t2 = time.perf_counter()
         memory.add(depth, K, pose)
         command = plan(state, start, goal, memory.points(), cfg.dynamics, cfg.controller)
-        yaw_target = heading(state.position, goal, state.yaw)
+        yaw_target = line_yaw if cfg.yaw == "line" else heading(state.position, goal, state.yaw)
         nxt = step(state, command.accel, yaw_target, cfg.dynamics)
         timing += [t1 - t0, t2 - t1, time.perf_counter() - t2]
         swept = world.swept(state.position, nxt.position, cfg.drone_radius)
