@@ -30,7 +30,9 @@ HISTORY = 8
 YAW_MODES = ("goal", "line")
 
 
-def oracle(rgb_history, true_depth, poses) -> np.ndarray:
+def oracle(
+    rgb_history: Sequence[np.ndarray], true_depth: np.ndarray, poses: Sequence[np.ndarray]
+) -> np.ndarray:
     """The rendered depth itself."""
     return true_depth
 
