@@ -66,8 +66,8 @@ def wall_points(x: float, half_width: float, spacing: float = 0.2) -> np.ndarray
 
 
 def test_a_wall_across_the_path_stops_the_drone_outside_the_safety_radius():
-    wall = wall_points(8.0, 10.0, spacing=0.3)
-    path, plans = fly_points(wall, steps=150)
+    wall = wall_points(8.0, 8.0, spacing=0.4)
+    path, plans = fly_points(wall, steps=100)
     assert brute_force_clearance(path, wall) > CTRL.safety_radius
     assert path[:, 0].max() < 8.0 - CTRL.safety_radius
     assert np.linalg.norm(path[-1] - path[-2]) / DYN.dt < 0.05  # at rest, not through
