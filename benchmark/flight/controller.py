@@ -54,7 +54,6 @@ class ControllerConfig:
     w_line: float = 0.3
     w_near: float = 5.0
     w_change: float = 0.05
-    corridor: float = 1.5  # m kept from the points by the cost-to-go's ways
     coarse_voxel: float = 0.5  # m, points thinned to one per cube of this side for the ways
 
 
@@ -132,10 +131,11 @@ def plan(
     dist = nearest_distances(traj, near_pts)
     plan_part = slice(0, cfg.horizon)
     coarse = voxel_filter(points, cfg.coarse_voxel)
-    vias = via_points(state.position, goal, coarse, cfg.corridor)
+    # the ways keep the safety radius, so they start clear from every feasible plan
+    vias = via_points(state.position, goal, coarse, cfg.safety_radius)
     nearest = np.linalg.norm(traj[:, plan_part] - goal, axis=-1).argmin(axis=1)
     ends = traj[np.arange(len(traj)), nearest]
-    togo = cost_to_go(ends, goal, vias, coarse, cfg.corridor)
+    togo = cost_to_go(ends, goal, vias, coarse, cfg.safety_radius)
     least = dist.min(axis=1)
     cost = (
         cfg.w_goal * togo
