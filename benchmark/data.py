@@ -29,7 +29,8 @@ from stillbox_gen import layout  # noqa: E402
 from stillbox_gen.camera import fov_from_focal  # noqa: E402
 from stillbox_gen.conventions import MAX_DEPTH, NOMINAL_SHIFT  # noqa: E402
 from stillbox_gen.dataset import Dataset, Scene  # noqa: E402
-from stillbox_gen.formats import DatasetError, read_depth  # noqa: E402, F401 - runner uses it
+from stillbox_gen.errors import DatasetError  # noqa: E402
+from stillbox_gen.formats import read_depth  # noqa: E402, F401 - runner uses it
 
 from .flow import flow_from_depth  # noqa: E402
 

@@ -19,6 +19,7 @@ import numpy as np
 
 from . import config, formats, generate, layout
 from .dataset import Dataset
+from .errors import ConfigError
 from .scene import sample_scene
 from .workers import process_pool, render_scene
 
@@ -33,7 +34,7 @@ def configurations(names: list[str]) -> dict[str, dict]:
     table = {**{q: dict(v) for q, v in config.QUALITY.items()}, "plain": dict(PLAIN)}
     unknown = [n for n in names if n not in table]
     if unknown:
-        raise config.ConfigError(
+        raise ConfigError(
             f"--configs: unknown {', '.join(unknown)} (choose from {', '.join(table)})"
         )
     return {n: table[n] for n in names}

@@ -17,9 +17,9 @@ from typing import TYPE_CHECKING
 import click
 
 from . import config
-from .config import ConfigError
 from .conventions import MAX_DEPTH, NOMINAL_SHIFT, default_root
-from .formats import DatasetError, disk_full_message, is_disk_full
+from .errors import ConfigError, DatasetError
+from .formats import disk_full_message, is_disk_full
 from .workers import Terminated, sigterm_as_interrupt
 
 if TYPE_CHECKING:

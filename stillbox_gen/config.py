@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from . import camera
+from .errors import ConfigError
 
 PRIMITIVE_KINDS = ("cube", "sphere", "cone", "torus", "cylinder", "slab")  # objects.kinds default
 # Every shape kind (shapes.py): the default draw above, plus "plane" (a flat rectangle, e.g. the
@@ -37,10 +38,6 @@ PATTERNS = ("noise", "voronoi", "wave", "magic", "checker", "brick", "gradient_s
 # The last three have hard edges that alias at 1 sample (at 128 px, 1 sample + denoiser vs 256
 # samples: checker/brick/stripes 19-28 dB, noise/Voronoi 29-34 dB), so they are opt-in.
 SMOOTH_PATTERNS = PATTERNS[:4]
-
-
-class ConfigError(ValueError):
-    """A user mistake in a preset file or a command-line flag (message names it)."""
 
 
 # Upper bounds of every size and count a user sets, by config key ("section.name") or run option

@@ -18,6 +18,8 @@ from pathlib import Path, PurePosixPath
 
 import numpy as np
 
+from .errors import DatasetError
+
 FORMAT_VERSION = 1
 NO_SURFACE_DEPTH = 1e10  # what Cycles writes where a ray hits nothing within max_distance
 DEPTH_CONVENTION = (
@@ -33,11 +35,6 @@ def canonical_json(obj) -> str:
 
 
 # ---------------------------------------------------------------- paths read from a dataset
-
-
-class DatasetError(ValueError):
-    """A dataset, or one of its files, that cannot be read; the message names the file (or the
-    record) and what is wrong with it. The command lines print it as a one-line user error."""
 
 
 class UnsafePathError(DatasetError):

@@ -18,9 +18,8 @@ import shutil
 from pathlib import Path
 
 from . import config, formats, layout
-from .config import ConfigError
 from .dataset import Dataset
-from .formats import DatasetError
+from .errors import ConfigError, DatasetError
 from .lock import folder_lock
 from .writer import (
     Totals,

@@ -21,7 +21,8 @@ import threading
 from concurrent.futures import Future
 from pathlib import Path
 
-from .config import ConfigError, DatasetConfig
+from .config import DatasetConfig
+from .errors import ConfigError
 from .workers import init_worker, render_scene, worker_init_args
 
 

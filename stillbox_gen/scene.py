@@ -18,7 +18,8 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from . import camera, photos, portable, shapes
-from .config import ConfigError, DatasetConfig, MaterialsConfig, is_plain_name
+from .config import DatasetConfig, MaterialsConfig, is_plain_name
+from .errors import ConfigError
 
 # Pattern frequencies (features per metre), low enough that textures stay legible at 64 px with a
 # 90 deg FOV: one pixel covers distance / 32 metres, i.e. ~0.5 m on an object at 15 m and ~2 m

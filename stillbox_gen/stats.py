@@ -37,10 +37,9 @@ from pathlib import Path
 import numpy as np
 
 from . import formats, layout
-from .config import ConfigError
 from .conventions import MAX_DEPTH, NOMINAL_SHIFT
 from .dataset import Dataset
-from .formats import DatasetError
+from .errors import ConfigError, DatasetError
 from .scene import foreign_photos
 
 #: Pixel-depth bands in metres: [0, 5), [5, 10), ..., [75, 100), then [100, inf) ("> 100", which

@@ -33,7 +33,8 @@ from concurrent.futures import Future, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 
-from .config import CPU_DEVICE, GPU_BACKENDS, ConfigError, DatasetConfig
+from .config import CPU_DEVICE, GPU_BACKENDS, DatasetConfig
+from .errors import ConfigError
 
 
 class Terminated(KeyboardInterrupt):

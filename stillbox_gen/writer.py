@@ -19,8 +19,8 @@ from importlib import metadata as importlib_metadata
 from pathlib import Path
 
 from . import config, formats, layout, manifest, photos
-from .config import CPU_DEVICE, ConfigError, DatasetConfig, denoise_quality
-from .formats import DatasetError
+from .config import CPU_DEVICE, DatasetConfig, denoise_quality
+from .errors import ConfigError, DatasetError
 from .lock import folder_lock
 
 # ---------------------------------------------------------------- what dataset.json says

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from stillbox_gen import cli, config
-from stillbox_gen.config import ConfigError
+from stillbox_gen.errors import ConfigError
 
 
 def build(*args) -> config.DatasetConfig:

@@ -13,7 +13,8 @@ import pytest
 
 from stillbox_gen import config, layout, manifest, writer
 from stillbox_gen.dataset import Dataset
-from stillbox_gen.formats import DatasetError, write_depth_exr
+from stillbox_gen.errors import DatasetError
+from stillbox_gen.formats import write_depth_exr
 from stillbox_gen.scene import sample_scene
 from stillbox_gen.validate import validate_dataset
 

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from stillbox_gen import camera, config, shapes
-from stillbox_gen.config import ConfigError
+from stillbox_gen.errors import ConfigError
 from stillbox_gen.scene import SceneSpec, path_hits, sample_scene
 
 N_SCENES = 500
