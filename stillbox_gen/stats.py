@@ -28,7 +28,6 @@ points in a spawned process.
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import os
 import tempfile
@@ -40,6 +39,7 @@ from . import formats, layout
 from .conventions import MAX_DEPTH, NOMINAL_SHIFT
 from .dataset import Dataset
 from .errors import ConfigError, DatasetError
+from .record import spec_from_record
 from .scene import foreign_photos
 
 #: Pixel-depth bands in metres: [0, 5), [5, 10), ..., [75, 100), then [100, inf) ("> 100", which
@@ -468,29 +468,6 @@ def dataset_stats(
 
 
 # ---------------------------------------------------------------- same-pose flicker
-
-
-def spec_from_record(rec: dict, frames: list[int] | None = None) -> dict:
-    """The SceneSpec dict of a scene record (metadata.json entry), optionally keeping only the
-    poses ``frames`` (rendered files are then numbered 0, 1, ... in that order)."""
-    from .scene import CameraSpec, SceneSpec
-
-    cam_keys = [f.name for f in dataclasses.fields(CameraSpec) if f.name not in ("width", "height")]
-    top = [f.name for f in dataclasses.fields(SceneSpec) if f.name != "camera"]
-    missing = [k for k in [*top, *cam_keys, "resolution"] if k not in rec]
-    if missing:
-        raise ConfigError(
-            f"DATASET: scene {rec.get('index')}'s record lacks {', '.join(missing)} "
-            "(written by another stillbox-gen version?)"
-        )
-    w, h = rec["resolution"]
-    camera = {"width": w, "height": h, **{k: rec[k] for k in cam_keys}}
-    if frames is not None:
-        camera["cam2world"] = [rec["cam2world"][f] for f in frames]
-        if camera["orientation"]:
-            camera["orientation"] = [rec["orientation"][f] for f in frames]
-    spec = {**{k: rec[k] for k in top}, "camera": camera}
-    return SceneSpec.from_dict(spec).to_dict()
 
 
 def _check_photos(ds: Dataset, scenes: list) -> None:

@@ -22,6 +22,7 @@ from . import config, formats, layout, manifest, photos
 from .config import CPU_DEVICE, DatasetConfig, denoise_quality
 from .errors import ConfigError, DatasetError
 from .lock import folder_lock
+from .record import scene_record
 
 # ---------------------------------------------------------------- what dataset.json says
 
@@ -192,7 +193,7 @@ def commit_scene(out: Path, spec: dict, cfg: DatasetConfig) -> dict:
     then write its record (the completion mark) with the SHA-256 of every file of the scene."""
     tmp = out / layout.scene_tmp_name(spec["index"])
     chunk_dir = tmp.parent
-    record = layout.scene_record(spec, cfg.render.image_format, cfg.render.legacy)
+    record = scene_record(spec, cfg.render.image_format, cfg.render.legacy)
     record["sha256"] = scene_checksums(tmp, record)
     for f in sorted(tmp.iterdir()):
         os.replace(f, chunk_dir / f.name)

@@ -17,13 +17,13 @@ import numpy as np
 import pytest
 from conftest import CLI, assert_user_error, file_tree, invoke_cli, run_cli
 
-from stillbox_gen import camera, config, formats, generate, layout, scene
+from stillbox_gen import camera, config, formats, generate, layout, record, scene
 from stillbox_gen.manifest import read_manifest
 
 pytestmark = pytest.mark.render
 
 
-def render_spec(spec: scene.SceneSpec, cfg: config.DatasetConfig, out: Path) -> None:
+def render_spec(spec: record.SceneSpec, cfg: config.DatasetConfig, out: Path) -> None:
     """Render one SceneSpec in a worker process, exactly as the generator does."""
     c = cfg.camera
     init = (cfg.to_dict()["render"], c.width, c.height, 0, None)
@@ -73,7 +73,7 @@ def test_rendered_sphere_matches_pinhole_projection_of_K(tmp_path):
     centre, radius = np.array([0.8, -0.4, 4.0]), 0.8
     material = spec.box.material
     spec.primitives = [
-        scene.PrimitiveSpec("sphere", [2 * radius] * 3, centre.tolist(), [1, 0, 0, 0], material)
+        record.PrimitiveSpec("sphere", [2 * radius] * 3, centre.tolist(), [1, 0, 0, 0], material)
     ]
     render_spec(spec, cfg, tmp_path)
     depth = formats.read_depth_exr(tmp_path / layout.depth_name(0, 0))
