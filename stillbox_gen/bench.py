@@ -21,6 +21,7 @@ from . import config, formats, generate, layout
 from .dataset import Dataset
 from .errors import ConfigError
 from .scene import sample_scene
+from .worker_setup import worker_setup
 from .workers import process_pool, render_scene
 
 REFERENCE_SAMPLES = 256
@@ -71,12 +72,13 @@ def reference_psnr(
 ) -> float:
     """Mean PSNR of the dataset's frames against REFERENCE_SAMPLES-sample renders of them
     (on the same Cycles ``device``)."""
-    ref_render = {**cfg.to_dict()["render"], "samples": REFERENCE_SAMPLES, "denoise": False}
-    c = cfg.camera
-    init = (ref_render, c.width, c.height, 0, cfg.materials.textures_dir, device)
+    reference = config.replace(cfg, render={"samples": REFERENCE_SAMPLES, "denoise": False})
     values = []
     ds = Dataset(root)
-    with tempfile.TemporaryDirectory() as tmp, process_pool(workers, init) as pool:
+    with (
+        tempfile.TemporaryDirectory() as tmp,
+        process_pool(workers, worker_setup(reference, 0, device)) as pool,
+    ):
         jobs = []
         for k in range(scenes):
             spec = sample_scene(cfg, k).to_dict()

@@ -470,20 +470,25 @@ def dataset_stats(
 # ---------------------------------------------------------------- same-pose flicker
 
 
-def _check_photos(ds: Dataset, scenes: list) -> None:
-    """Every photo a scene names is one of dataset.json's config (a plain name, opened inside
-    its textures_dir or the bundled folder); DatasetError naming the record otherwise."""
+def _config_of(ds: Dataset):
+    """The DatasetConfig of dataset.json (DatasetError naming it when it is not readable)."""
     from .config import from_dict
 
     try:
-        materials = from_dict(ds.info["config"]).materials
+        return from_dict(ds.info["config"])
     except Exception as e:  # noqa: BLE001 - any malformed config is the dataset's
         raise DatasetError(f"'{ds.root / 'dataset.json'}': config is not readable ({e})") from None
+
+
+def _check_photos(materials, scenes: list, root: Path) -> None:
+    """Every photo a scene names is one of the dataset's ``materials`` (config.MaterialsConfig:
+    a plain name, opened inside its textures_dir or the bundled folder); DatasetError naming
+    the record otherwise."""
     for scene in scenes:
         found = foreign_photos(scene.record, materials)
         if found:
             raise DatasetError(
-                f"{ds.root / layout.chunk_name(scene.index) / 'metadata.json'}: scene "
+                f"{root / layout.chunk_name(scene.index) / 'metadata.json'}: scene "
                 f"{scene.index}: photo {found[0]!r} is not one of the dataset's photos "
                 "(config.materials)"
             )
@@ -500,24 +505,23 @@ def flicker_stats(
     objects; also the largest depth difference (metres), a check of the pose."""
     from tqdm import tqdm
 
+    from .worker_setup import worker_setup
     from .workers import process_pool, render_scene
 
     ds = _open(root)
-    info, available = ds.info, ds.indices()
+    available = ds.indices()
     if not 1 <= count <= len(available):
         raise ConfigError(f"--flicker: must be between 0 and {len(available)} scenes, got {count}")
     scenes = ds.scenes(limit=count)
-    cfg = info["config"]
-    _check_photos(ds, scenes)
-    cam, render = cfg["camera"], cfg["render"]
-    image_format = render.get("image_format", "png")
-    init = (render, cam["width"], cam["height"], threads, cfg["materials"].get("textures_dir"))
+    cfg = _config_of(ds)
+    _check_photos(cfg.materials, scenes, ds.root)
+    image_format = cfg.render.image_format
     sums = {k: {p: [0.0, 0] for p in PARTS} for k in ("same_pose", "other_seed")}
     depth_diff = 0.0
     used = []
     with (
         tempfile.TemporaryDirectory(prefix="stillbox-stats-") as tmp,
-        process_pool(1, init) as pool,
+        process_pool(1, worker_setup(cfg, threads)) as pool,
         tqdm(
             total=2 * count, desc="flicker", unit="render", disable=not progress, dynamic_ncols=True
         ) as bar,
@@ -713,7 +717,9 @@ def run(
     out = Path(out) if out is not None else ds.root
     _check_out_folder(out)
     if flicker:
-        _check_photos(ds, ds.scenes(limit=flicker))  # before measuring: they are re-rendered
+        _check_photos(
+            _config_of(ds).materials, ds.scenes(limit=flicker), ds.root
+        )  # before measuring: they are re-rendered
     stats = dataset_stats(ds, scenes, shift, max_depth, progress)
     stats["flicker"] = flicker_stats(ds, flicker, progress) if flicker else None
     try:  # created only now: a refusal during the measurements leaves nothing behind
