@@ -335,3 +335,34 @@ def test_preset_photos_that_decode_are_accepted(tmp_path, photo_folder):
         tmp_path, f'[materials]\ntextures_dir = "{photo_folder}"\ntexture_files = ["good.png"]\n'
     )
     assert build("--preset", path).materials.texture_files == ("good.png",)
+
+
+# ---------------------------------------------------------------- flags declared with their field
+
+
+def test_every_config_flag_is_a_generate_option_that_sets_its_fields():
+    """Each config.Flag (field metadata) is an option of generate, and giving it sets the
+    fields it names: the flag is declared once, next to its field."""
+    options = {o for p in cli.generate.params for o in getattr(p, "opts", [])}
+    samples = {int: "7", float: "0.25", str: None}
+    checked = 0
+    for key, fl in config.config_flags().items():
+        assert fl.name in options, fl.name
+        if fl.parse or fl.is_flag or samples.get(fl.type) is None:
+            continue
+        cfg = build(fl.name, samples[fl.type])
+        section, _, name = key.rpartition(".")
+        got = getattr(getattr(cfg, section) if section else cfg, name)
+        assert got == fl.type(samples[fl.type]), key
+        checked += 1
+    assert checked >= 5
+
+
+def test_flags_with_several_fields_set_them_all_and_name_them_in_errors():
+    cfg = build("--res", "40x30", "--fov", "60", "--legacy", "--image-format", "jpg")
+    assert (cfg.camera.width, cfg.camera.height, cfg.camera.fov_deg) == (40, 30, 60.0)
+    assert cfg.camera.focal_px is None and cfg.render.legacy and cfg.render.image_format == "jpg"
+    assert config.FLAGS["camera.width"] == config.FLAGS["camera.height"] == "--res"
+    assert config.FLAGS["materials.texture_files"] == "--textures"
+    with pytest.raises(ConfigError, match=r"^--res: width and height must be positive"):
+        build("--res", "0x30")
