@@ -28,6 +28,8 @@ os.environ.setdefault("OPENCV_IO_ENABLE_OPENEXR", "1")
 
 import cv2  # noqa: E402
 
+from stillbox_gen.camera import focal_from_fov  # noqa: E402
+
 #: image files read from a folder of frames (case-insensitive), in name order
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 #: colour map of the depth PNGs and the preview: near is bright, far is dark (as benchmark plots)
@@ -132,7 +134,7 @@ def focal_px(width: int, fov_deg: float | None = None, focal: float | None = Non
     from the horizontal field of view ``fov_deg`` (degrees)."""
     if focal is not None:
         return float(focal)
-    return width / (2.0 * math.tan(math.radians(fov_deg) / 2.0))
+    return focal_from_fov(fov_deg, width)
 
 
 def crop_box(

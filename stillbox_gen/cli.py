@@ -469,7 +469,8 @@ def preview(dataset: Path, out: Path, scenes: int, max_depth: float) -> None:
 def stats(dataset: Path, scenes: int, shift: int, flicker: int, out, max_depth: float) -> None:
     """Data-quality report: depth bands, walls vs objects, true flow, photometric residuals
     (and render flicker), beside StillBox's published figures; writes stats.json, stats.png."""
-    from .stats import run, table
+    from .stats.report import table
+    from .stats.run import run
 
     with reading("DATASET"):
         result = run(dataset, scenes, shift, flicker, out, max_depth, progress=True)

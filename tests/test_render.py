@@ -417,9 +417,9 @@ def test_default_scenes_have_stillbox_like_depth(default_dataset):
     defaults these shares range 0.31-0.68 and 0.41-0.71; the literal Table 3.2 reading (sizes
     0-2 m) gave 0.03 and 0.21 with 79 % wall pixels.
     """
-    from stillbox_gen import stats
+    from stillbox_gen.stats.measure import dataset_stats
 
-    s = stats.dataset_stats(default_dataset, scenes=4)
+    s = dataset_stats(default_dataset, scenes=4)
     assert s["depth"]["share_5_25m"] > 0.25
     assert s["depth"]["share_below_25m"] > 0.35
     assert 0.15 < s["walls_objects"]["wall_share"] < 0.75
