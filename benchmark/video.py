@@ -17,18 +17,14 @@ from __future__ import annotations
 
 import csv
 import math
-import os
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
 
-os.environ.setdefault("OPENCV_IO_ENABLE_OPENEXR", "1")
-
-import cv2  # noqa: E402
-
-from stillbox_gen.camera import focal_from_fov  # noqa: E402
+from stillbox_gen.camera import focal_from_fov
 
 #: image files read from a folder of frames (case-insensitive), in name order
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")

@@ -571,7 +571,6 @@ def reading(argument: str | None = None):
 
 
 def main(argv: list[str] | None = None) -> None:
-    os.environ.setdefault("OPENCV_IO_ENABLE_OPENEXR", "1")
     try:
         with sigterm_as_interrupt():
             cli.main(args=argv, prog_name="stillbox-gen", standalone_mode=False)

@@ -20,6 +20,14 @@ import numpy as np
 
 from .errors import DatasetError
 
+# OpenCV decodes and encodes EXR files only when OPENCV_IO_ENABLE_OPENEXR is set (off by default
+# since OpenCV 4.5.2, for security: opencv/opencv#21326). OpenCV reads the variable at its first
+# EXR file, not when cv2 is imported, so setting it here, when the file formats are loaded (before
+# any EXR is read: cv2 is imported inside functions), enables it for every later use, in this
+# process and in the workers it spawns: read_exr_image (the panoramas bundled with bpy) and tests
+# reading depth maps with cv2. The dataset's depth maps are read and written with OpenEXR itself.
+os.environ.setdefault("OPENCV_IO_ENABLE_OPENEXR", "1")
+
 FORMAT_VERSION = 1
 NO_SURFACE_DEPTH = 1e10  # what Cycles writes where a ray hits nothing within max_distance
 DEPTH_CONVENTION = (
@@ -195,6 +203,14 @@ def read_depth(path: Path) -> np.ndarray:
         return read_depth_exr(path)
     except Exception as e:  # noqa: BLE001 - any reader failure is the dataset's file
         raise DatasetError(f"cannot read depth '{path}' ({e})") from None
+
+
+def read_exr_image(path: Path) -> np.ndarray | None:
+    """An EXR image as OpenCV reads it (float32, BGR or BGRA channel order), None when it cannot
+    be read."""
+    import cv2
+
+    return cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
 
 
 def read_multilayer_exr(path: Path) -> dict[str, np.ndarray]:

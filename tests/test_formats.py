@@ -1,21 +1,18 @@
 """On-disk formats: depth EXR, sRGB conversion, JSON, the layout's records and the parquet
 manifest."""
 
+import json
 import os
+import re
 
-os.environ["OPENCV_IO_ENABLE_OPENEXR"] = "1"  # must be set before cv2 is imported
+import cv2
+import jsonschema
+import numpy as np
+import pytest
 
-import json  # noqa: E402
-import re  # noqa: E402
-
-import cv2  # noqa: E402
-import jsonschema  # noqa: E402
-import numpy as np  # noqa: E402
-import pytest  # noqa: E402
-
-from stillbox_gen import config, formats, layout, manifest, record, schema, writer  # noqa: E402
-from stillbox_gen.errors import ConfigError  # noqa: E402
-from stillbox_gen.scene import sample_scene  # noqa: E402
+from stillbox_gen import config, formats, layout, manifest, record, schema, writer
+from stillbox_gen.errors import ConfigError
+from stillbox_gen.scene import sample_scene
 
 ORIGINAL_KEYS = ["imgs", "depth", "speed", "time_step", "length", "orientation"]
 
