@@ -31,6 +31,7 @@ import torch
 from tqdm import tqdm
 
 from stillbox_gen.conventions import MAX_DEPTH
+from stillbox_gen.formats import temp_path
 
 from . import video
 from .checkpoint import depth_network
@@ -308,7 +309,7 @@ def frame_depth(
 
 def run(job: Job, o: InferOptions) -> dict:
     """Depth of every frame of ``job`` into ``o.out``; returns the summary (also summary.json)."""
-    tmp = o.out.parent / f".{o.out.name}.partial-{os.getpid()}"
+    tmp = temp_path(o.out)
     o.out.parent.mkdir(parents=True, exist_ok=True)
     try:
         summary = _loop(job, o, tmp)

@@ -10,6 +10,7 @@ is measured in the same invocation.
 from __future__ import annotations
 
 import csv
+import io
 import tempfile
 import time
 from dataclasses import dataclass
@@ -159,11 +160,11 @@ def markdown_table(rows: list[BenchRow]) -> str:
 
 
 def write_csv(rows: list[BenchRow], path: Path) -> None:
+    """The rows as CSV (one column per BenchRow field), written atomically."""
     fields = list(BenchRow.__dataclass_fields__)
-    tmp = path.with_name(path.name + ".tmp")
-    with tmp.open("w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=fields)
-        w.writeheader()
-        for r in rows:
-            w.writerow({k: getattr(r, k) for k in fields})
-    tmp.replace(path)
+    text = io.StringIO(newline="")
+    w = csv.DictWriter(text, fieldnames=fields)
+    w.writeheader()
+    for r in rows:
+        w.writerow({k: getattr(r, k) for k in fields})
+    formats.atomic_write_text(path, text.getvalue())

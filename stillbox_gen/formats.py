@@ -14,7 +14,9 @@ import hashlib
 import json
 import os
 import shutil
+from collections.abc import Callable
 from pathlib import Path, PurePosixPath
+from typing import BinaryIO
 
 import numpy as np
 
@@ -90,23 +92,45 @@ def file_sha256(path: Path) -> str:
 # ---------------------------------------------------------------- atomic writes
 
 
-def atomic_write_bytes(path: Path, data: bytes) -> None:
-    """Write via a temporary name in the same folder, fsync, then rename. On failure the
-    temporary file is deleted, and an OSError names ``path`` (e.g. a full disk, see
-    :func:`is_disk_full`)."""
+TEMP_INFIX = ".tmp-"  # a file or folder being written: .<name>.tmp-<pid> (temp_path)
+
+
+def temp_path(path: Path) -> Path:
+    """Where ``path`` (a file or a folder) is written before it is renamed to its name: the
+    hidden ``.<name>.tmp-<pid>`` beside it, one per process (two writers never share one)."""
     path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    return path.with_name(f".{path.name}{TEMP_INFIX}{os.getpid()}")
+
+
+def atomic_write(path: Path, write: Callable[[BinaryIO], None], sync_folder: bool = False) -> None:
+    """``write(f)`` into :func:`temp_path` of ``path``, fsync it, rename it over ``path`` (then
+    fsync the folder when ``sync_folder``): a kill or power cut leaves the old file or the new
+    one, never half of one. On any failure the temporary file is deleted; an OSError names
+    ``path`` (e.g. a full disk, see :func:`is_disk_full`)."""
+    path = Path(path)
+    tmp = temp_path(path)
     try:
         with open(tmp, "wb") as f:
-            f.write(data)
+            write(f)
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
-    except OSError as e:
+    except BaseException as e:
         tmp.unlink(missing_ok=True)
-        if e.filename is None:  # a failed write() names no file
+        if isinstance(e, OSError) and e.filename is None:  # a failed write() names no file
             raise OSError(e.errno, e.strerror, str(path)) from e
         raise
+    if sync_folder:
+        fd = os.open(path.parent, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+
+
+def atomic_write_bytes(path: Path, data: bytes) -> None:
+    """:func:`atomic_write` of ``data``."""
+    atomic_write(path, lambda f: f.write(data))
 
 
 def atomic_write_text(path: Path, text: str) -> None:

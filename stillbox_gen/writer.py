@@ -173,7 +173,8 @@ def prepare_output(out: Path, cfg: DatasetConfig, scenes: int, device: str = CPU
 def _is_own_temporary(path: Path) -> bool:
     """A dataset.json being written by another shard that started into the same new folder, or
     the lock file of a run (stillbox_gen.lock; left behind by a run killed before it wrote)."""
-    return path.name.startswith(f".{layout.DATASET_JSON}.tmp-") or path.name == layout.LOCK_FILE
+    own = f".{layout.DATASET_JSON}{formats.TEMP_INFIX}"
+    return path.name.startswith(own) or path.name == layout.LOCK_FILE
 
 
 def pending_indices(out: Path, scenes: int, shard: tuple[int, int] = (0, 1)) -> list[int]:

@@ -88,6 +88,25 @@ def test_atomic_write_json_leaves_only_the_file(tmp_path):
         formats.atomic_write_json(tmp_path / "nan.json", {"x": float("nan")})
 
 
+def test_atomic_write_keeps_the_old_file_when_the_write_fails(tmp_path):
+    """A write that fails half way leaves the old file and no temporary; the temporary is
+    .<name>.tmp-<pid> beside the file (what every writer of both packages uses)."""
+    path = tmp_path / "plot.png"
+    path.write_bytes(b"old")
+    assert formats.temp_path(path) == tmp_path / f".plot.png.tmp-{os.getpid()}"
+
+    def half(f):
+        f.write(b"ne")
+        assert formats.temp_path(path).exists() and path.read_bytes() == b"old"
+        raise RuntimeError("cut")
+
+    with pytest.raises(RuntimeError, match="cut"):
+        formats.atomic_write(path, half)
+    assert [p.name for p in tmp_path.iterdir()] == ["plot.png"] and path.read_bytes() == b"old"
+    formats.atomic_write(path, lambda f: f.write(b"new"), sync_folder=True)
+    assert [p.name for p in tmp_path.iterdir()] == ["plot.png"] and path.read_bytes() == b"new"
+
+
 def test_canonical_json_is_key_order_independent():
     """canonical_json gives the same text for equal dicts with different key orders."""
     a = {"a": 1, "b": {"c": [1, 2], "d": 0.1}}

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..formats import atomic_write
 from .common import PARTS
 from .histograms import BAND_LABELS
 
@@ -122,7 +123,7 @@ def plot(stats: dict, path: Path) -> None:
     ax.set_title("flow magnitude")
     ax.legend(fontsize=8)
     fig.tight_layout()
-    tmp = path.with_name(f".{path.name}.tmp.png")
-    fig.savefig(tmp, dpi=100)
-    plt.close(fig)
-    tmp.replace(path)
+    try:
+        atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=100))
+    finally:
+        plt.close(fig)
