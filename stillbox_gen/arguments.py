@@ -4,6 +4,8 @@ parser raises ConfigError naming its flag, in one line. The benchmark may import
 
 from __future__ import annotations
 
+from pathlib import Path
+
 from .errors import ConfigError
 
 
@@ -34,3 +36,10 @@ def parse_shares(value: str, flag: str = "--split") -> tuple[float, ...]:
         return tuple(float(v) for v in value.split(","))
     except ValueError:
         raise ConfigError(f"{flag}: expected TRAIN,VAL,TEST shares, got '{value}'") from None
+
+
+def check_out_folder(out: Path, flag: str = "--out", error: type[Exception] = ConfigError) -> None:
+    """A folder to write into (created later when missing) must not be a file: ``error`` (the
+    command line's own one-line error) naming ``flag`` otherwise."""
+    if out.exists() and not out.is_dir():
+        raise error(f"{flag}: '{out}' is a file, not a folder")

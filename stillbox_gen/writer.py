@@ -19,6 +19,7 @@ from importlib import metadata as importlib_metadata
 from pathlib import Path
 
 from . import config, formats, layout, manifest, photos
+from .arguments import check_out_folder
 from .config import CPU_DEVICE, DatasetConfig, denoise_quality
 from .errors import ConfigError, DatasetError
 from .lock import folder_lock
@@ -127,8 +128,7 @@ def join_devices(*values: str | None) -> str:
 def prepare_output(out: Path, cfg: DatasetConfig, scenes: int, device: str = CPU_DEVICE) -> str:
     """Check --out, mark the dataset incomplete; ConfigError (nothing written) on conflicts.
     Returns its ``render.device``: ``device`` after those recorded there (join_devices)."""
-    if out.exists() and not out.is_dir():
-        raise ConfigError(f"--out: '{out}' exists and is a file, not a folder")
+    check_out_folder(out)
     existing = out / layout.DATASET_JSON
     recorded = None  # the devices of earlier runs into it
     try:

@@ -165,6 +165,7 @@ BENCHMARK_MAY_LOAD = frozenset(
     f"stillbox_gen{suffix}"
     for suffix in (
         "",
+        ".arguments",
         ".camera",
         ".conventions",
         ".dataset",

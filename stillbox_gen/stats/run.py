@@ -7,6 +7,7 @@ import os
 from pathlib import Path
 
 from .. import formats
+from ..arguments import check_out_folder
 from ..conventions import MAX_DEPTH, NOMINAL_SHIFT
 from ..dataset import Dataset
 from ..errors import ConfigError
@@ -18,11 +19,9 @@ from .report import plot
 def _check_out_folder(out: Path) -> None:
     """--out can be written: a folder, or a path whose nearest existing ancestor is a writable
     folder (created after the measurements). ConfigError naming --out otherwise."""
-    if out.exists() and not out.is_dir():
-        raise ConfigError(f"--out: '{out}' is a file, not a folder")
+    check_out_folder(out)
     existing = next(p for p in (out, *out.absolute().parents) if p.exists())
-    if not existing.is_dir():
-        raise ConfigError(f"--out: '{existing}' is a file, not a folder")
+    check_out_folder(existing)
     if not os.access(existing, os.W_OK | os.X_OK):
         raise ConfigError(f"--out: cannot create '{out}' ('{existing}' is not writable)")
 
