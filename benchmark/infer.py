@@ -45,6 +45,7 @@ from .multishift import (
     MAX_SHIFTS,
     DepthScale,
     ShiftPlanner,
+    displacements,
     fuse,
 )
 
@@ -341,7 +342,7 @@ def _loop(job: Job, o: InferOptions, folder: Path) -> dict:
             if t == 0:
                 outputs.row(0, "first frame (no earlier frame)")
                 continue
-            available = video.displacements(job.positions, t, len(ring) - 1)
+            available = displacements(job.positions, t, len(ring) - 1)
             est = frame_depth(planner, available, lambda s: network_outputs(*net, ring, s))
             if est is None:
                 stats["no_motion"] += 1

@@ -230,13 +230,6 @@ def _row(where: str, row: list[str], line: int, header: list[str], cols: list[in
     return out
 
 
-def displacements(positions: np.ndarray, t: int, max_shift: int) -> np.ndarray:
-    """d(t, δ) = |p_t − p_{t−δ}| (m) for δ = 1..min(t, max_shift)."""
-    n = min(t, max_shift)
-    back = positions[t - np.arange(1, n + 1)]
-    return np.linalg.norm(positions[t] - back, axis=1)
-
-
 # ---------------------------------------------------------------- outputs
 
 

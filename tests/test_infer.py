@@ -21,11 +21,11 @@ from conftest import invoke_main
 
 from benchmark import cli, registry
 from benchmark.checkpoint import depth_network
+from benchmark.multishift import displacements
 from benchmark.video import (
     Crop,
     constant_speed_positions,
     crop_box,
-    displacements,
     focal_px,
     read_poses,
 )
