@@ -24,11 +24,12 @@ def _fmt(v: float | None, kind: str) -> str:
     return f"{v:.2f}"
 
 
-def table(stats: dict) -> str:
-    """The report as a plain-text table: our figure beside StillBox's ('-' when it has none)."""
-    ref = stats["stillbox_reference"]
-    d, wo, fl, rs = stats["depth"], stats["walls_objects"], stats["flow"], stats["residual"]
-    rows: list[tuple[str, str, str]] = [
+Row = tuple[str, str, str]  # label, our figure, StillBox's ('-' when it has none)
+
+
+def _depth_rows(stats: dict) -> list[Row]:
+    ref, d, wo = stats["stillbox_reference"], stats["depth"], stats["walls_objects"]
+    rows = [
         ("median pixel depth", _fmt(d["median_m"], "m"), _fmt(ref["median_depth_m"], "m")),
         ("pixels below 25 m", _fmt(d["share_below_25m"], "%"), _fmt(ref["share_below_25m"], "%")),
         ("pixels in 5-25 m", _fmt(d["share_5_25m"], "%"), _fmt(ref["share_5_25m"], "%")),
@@ -37,13 +38,17 @@ def table(stats: dict) -> str:
         rows.append(
             (f"  depth {k} m", _fmt(d["band_shares"][k], "%"), _fmt(ref["band_shares"][k], "%"))
         )
-    rows += [
+    return rows + [
         ("wall pixels", _fmt(wo["wall_share"], "%"), "-"),
         ("object pixels", _fmt(wo["object_share"], "%"), "-"),
         ("median wall depth", _fmt(wo["median_wall_depth_m"], "m"), "-"),
         ("median object depth", _fmt(wo["median_object_depth_m"], "m"), "-"),
     ]
-    s = stats["shift"]
+
+
+def _motion_rows(stats: dict) -> list[Row]:
+    fl, rs, s = stats["flow"], stats["residual"], stats["shift"]
+    rows = []
     for p in PARTS:
         f = fl[p]
         spread = f"{_fmt(f['median_px'], 'px')} ({_fmt(f['p10_px'], '')}-{_fmt(f['p90_px'], '')})"
@@ -53,43 +58,46 @@ def table(stats: dict) -> str:
             rows.append((f"residual {label}, {p} (grey levels)", _fmt(rs[key][p], ""), "-"))
     for p in PARTS:
         rows.append((f"  pixels kept for the warp, {p}", _fmt(rs["valid_share"][p], "%"), "-"))
-    fk = stats.get("flicker")
-    if fk:
-        for key, label in (("same_pose", "same-pose flicker"), ("other_seed", "other seed")):
-            for p in PARTS:
-                rows.append((f"{label}, {p} (grey levels)", _fmt(fk[key][p], ""), "-"))
-    head = ("", "ours", "StillBox")
-    widths = [max(len(r[c]) for r in [head, *rows]) for c in range(3)]
-    lines = [
-        f"{stats['dataset']}: {stats['n_scenes']} scenes, {stats['frames']} frames, "
-        f"{stats['pairs']} pairs (i, i+{s}), {stats['resolution'][0]}x{stats['resolution'][1]} px",
-        "  ".join(
-            h.ljust(wd) if i == 0 else h.rjust(wd)
-            for i, (h, wd) in enumerate(zip(head, widths, strict=True))
-        ),
+    return rows + _flicker_rows(stats.get("flicker"))
+
+
+def _flicker_rows(fk: dict | None) -> list[Row]:
+    if not fk:
+        return []
+    labels = (("same_pose", "same-pose flicker"), ("other_seed", "other seed"))
+    return [
+        (f"{label}, {p} (grey levels)", _fmt(fk[key][p], ""), "-")
+        for key, label in labels
+        for p in PARTS
     ]
-    for r in rows:
-        lines.append(
-            "  ".join(
-                v.ljust(wd) if i == 0 else v.rjust(wd)
-                for i, (v, wd) in enumerate(zip(r, widths, strict=True))
-            )
+
+
+def _aligned(rows: list[Row]) -> list[str]:
+    """Rows as text columns: the label left-aligned, the figures right-aligned."""
+    widths = [max(len(r[c]) for r in rows) for c in range(3)]
+    return [
+        "  ".join(
+            v.ljust(wd) if i == 0 else v.rjust(wd)
+            for i, (v, wd) in enumerate(zip(r, widths, strict=True))
         )
-    return "\n".join(lines)
+        for r in rows
+    ]
 
 
-def plot(stats: dict, path: Path) -> None:
-    """stats.png: depth bands ours vs StillBox, depth histogram to --max-depth (walls, objects),
-    flow-magnitude histogram (walls, objects) on a log x-axis. Written via a temporary name."""
-    import matplotlib
+def table(stats: dict) -> str:
+    """The report as a plain-text table: our figure beside StillBox's ('-' when it has none)."""
+    (w, h), s = stats["resolution"], stats["shift"]
+    title = (
+        f"{stats['dataset']}: {stats['n_scenes']} scenes, {stats['frames']} frames, "
+        f"{stats['pairs']} pairs (i, i+{s}), {w}x{h} px"
+    )
+    head: Row = ("", "ours", "StillBox")
+    return "\n".join([title, *_aligned([head, *_depth_rows(stats), *_motion_rows(stats)])])
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
 
-    d, fl = stats["depth"], stats["flow"]
-    fig, axes = plt.subplots(1, 3, figsize=(16, 4.2))
-    x = np.arange(len(BAND_LABELS))
-    ax = axes[0]
+def _plot_bands(ax, stats: dict) -> None:
+    """Pixel-depth bands, ours beside StillBox's."""
+    d, x = stats["depth"], np.arange(len(BAND_LABELS))
     ours = [100 * d["band_shares"][k] for k in BAND_LABELS]
     ref = [100 * stats["stillbox_reference"]["band_shares"][k] for k in BAND_LABELS]
     ax.bar(x - 0.2, ours, 0.4, label=f"ours ({stats['n_scenes']} scenes)")
@@ -100,7 +108,10 @@ def plot(stats: dict, path: Path) -> None:
     ax.set_title("pixel depth")
     ax.legend(fontsize=8)
 
-    ax = axes[1]
+
+def _plot_depth(ax, stats: dict) -> None:
+    """The depth histogram up to --max-depth, walls and objects stacked."""
+    d = stats["depth"]
     edges = np.asarray(d["histogram"]["edges_m"])
     bottom = np.zeros(len(edges) - 1)
     for p in PARTS:
@@ -112,7 +123,10 @@ def plot(stats: dict, path: Path) -> None:
     ax.set_title("pixel depth, walls and objects")
     ax.legend(fontsize=8)
 
-    ax = axes[2]
+
+def _plot_flow(ax, stats: dict) -> None:
+    """The flow-magnitude histogram of walls and of objects, log x-axis."""
+    fl = stats["flow"]
     edges = np.asarray(fl["histogram"]["edges_px"])
     for p in PARTS:
         v = 100 * np.asarray(fl["histogram"][p]["shares"])
@@ -122,6 +136,19 @@ def plot(stats: dict, path: Path) -> None:
     ax.set_ylabel("share of the part's pixels (%)")
     ax.set_title("flow magnitude")
     ax.legend(fontsize=8)
+
+
+def plot(stats: dict, path: Path) -> None:
+    """stats.png: depth bands ours vs StillBox, depth histogram to --max-depth (walls, objects),
+    flow-magnitude histogram (walls, objects) on a log x-axis. Written atomically."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 3, figsize=(16, 4.2))
+    for draw, ax in zip((_plot_bands, _plot_depth, _plot_flow), axes, strict=True):
+        draw(ax, stats)
     fig.tight_layout()
     try:
         atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=100))
