@@ -9,6 +9,7 @@ import dataclasses
 import math
 import typing
 
+import click
 import cv2
 import numpy as np
 import pytest
@@ -356,6 +357,16 @@ def test_every_config_flag_is_a_generate_option_that_sets_its_fields():
         assert got == fl.type(samples[fl.type]), key
         checked += 1
     assert checked >= 5
+
+
+def test_generate_help_places_are_unique():
+    """Every generate option has its own place in --help (config.Flag.order, cli._RUN_OPTIONS),
+    and --help lists them in that order."""
+    places = [fl.order for fl in config.config_flags().values()]
+    places += [order for order, _ in cli._RUN_OPTIONS]
+    assert len(places) == len(set(places))
+    shown = [p.opts[0] for p in cli.generate.params if isinstance(p, click.Option)]
+    assert shown[:4] == ["--res", "--scenes", "--out", "--seed"] and shown[-1] == "--quiet"
 
 
 def test_flags_with_several_fields_set_them_all_and_name_them_in_errors():
