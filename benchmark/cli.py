@@ -13,7 +13,9 @@ from typing import TYPE_CHECKING
 
 import click
 
+from stillbox_gen.arguments import check_out_folder, parse_resolution
 from stillbox_gen.conventions import MAX_DEPTH, default_root
+from stillbox_gen.errors import ConfigError
 
 from . import registry
 from . import speed as speed_table
@@ -259,8 +261,7 @@ def run(model: str, data: Path, out: Path | None, **o) -> None:
         )
     if out is None:
         out = Path("runs") / f"{model}-{data.resolve().name}-{time.strftime('%Y%m%d-%H%M%S')}"
-    if out.exists() and not out.is_dir():
-        raise UserError(f"--out: '{out}' is a file")
+    check_out_folder(out, error=UserError)
     if not o["resume"] and checkpoint_path(out, "last").exists():
         raise UserError(f"--out: '{out}' already holds a run; add --resume or choose another --out")
     if o["resume"] and _is_default("seed"):
@@ -349,8 +350,7 @@ def eval_cmd(
         raise UserError(f"--batch-size: must be at least 1, got {batch_size}")
     _device(device)
     out = out or ckpt.resolve().parent.parent / f"eval-{data.resolve().name}-{split}"
-    if out.exists() and not out.is_dir():
-        raise UserError(f"--out: '{out}' is a file")
+    check_out_folder(out, error=UserError)
     from .runner import score_checkpoint
 
     try:  # checks the checkpoint and the data before anything is written to --out
@@ -418,8 +418,7 @@ def compare(data: Path, names: str, out: Path | None, **o) -> None:
     _training_options(o)
     if out is None:
         out = Path("runs") / f"compare-{data.resolve().name}-{time.strftime('%Y%m%d-%H%M%S')}"
-    if out.exists() and not out.is_dir():
-        raise UserError(f"--out: '{out}' is a file")
+    check_out_folder(out, error=UserError)
     runs = []
     for name in chosen:
         run_dir = out / name
@@ -551,8 +550,7 @@ def speed(
     _int_list("--time-res", str(time_res))
     if warmup < 0 or repeats < 1:
         raise UserError("--warmup must be >= 0 and --repeats >= 1")
-    if out.exists() and not out.is_dir():
-        raise UserError(f"--out: '{out}' is a file")
+    check_out_folder(out, error=UserError)
     dev = _device(device)
     if threads > 0:
         torch.set_num_threads(threads)
@@ -595,8 +593,7 @@ def _train_speed(names, batches, data, baseline, compile_, time_res, device, thr
         raise UserError("--warmup must be >= 0 and --repeats >= 1")
     if data is not None and not data.is_dir():
         raise UserError(f"--data: '{data}' is not a dataset folder")
-    if out.exists() and not out.is_dir():
-        raise UserError(f"--out: '{out}' is a file")
+    check_out_folder(out, error=UserError)
     dev = _device(device)
     if threads > 0:
         torch.set_num_threads(threads)
@@ -631,12 +628,9 @@ def _size_option(value: str | None) -> tuple[int, int] | None:
     if value is None:
         return None
     try:
-        parts = [int(v) for v in value.lower().split("x")]
-    except ValueError:
-        parts = []
-    if len(parts) not in (1, 2):
-        raise UserError(f"--res: expected WxH or N (pixels), got '{value}'")
-    return (parts[0], parts[-1])
+        return parse_resolution(value)
+    except ConfigError as e:
+        raise UserError(str(e)) from None
 
 
 @cli.command()
@@ -791,8 +785,7 @@ def eval_multishift(
         raise UserError(f"--beta-mean: must be in ({BETA_MIN}, {BETA_MAX}), got {beta_mean}")
     if scenes is not None and scenes < 1:
         raise UserError(f"--scenes: must be at least 1, got {scenes}")
-    if out.exists() and not out.is_dir():
-        raise UserError(f"--out: '{out}' is a file")
+    check_out_folder(out, error=UserError)
     dev = _device(device)
     try:  # checkpoints and data are checked before anything is written to --out
         _, md = run_multishift(

@@ -23,15 +23,14 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-os.environ.setdefault("OPENCV_IO_ENABLE_OPENEXR", "1")
+from stillbox_gen import layout
+from stillbox_gen.camera import fov_from_focal
+from stillbox_gen.conventions import MAX_DEPTH, NOMINAL_SHIFT
+from stillbox_gen.dataset import Dataset, Scene
+from stillbox_gen.errors import DatasetError
+from stillbox_gen.formats import read_depth  # noqa: F401 - runner uses it
 
-from stillbox_gen import layout  # noqa: E402
-from stillbox_gen.camera import fov_from_focal  # noqa: E402
-from stillbox_gen.conventions import MAX_DEPTH, NOMINAL_SHIFT  # noqa: E402
-from stillbox_gen.dataset import Dataset, Scene  # noqa: E402
-from stillbox_gen.formats import DatasetError, read_depth  # noqa: E402, F401 - runner uses it
-
-from .flow import flow_from_depth  # noqa: E402
+from .flow import flow_from_depth
 
 STILL_TARGET = 100.0  # target for identical frames: "no motion => infinitely far", saturated
 CACHE_LIMIT_BYTES = 8 * 1024**3

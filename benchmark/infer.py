@@ -31,6 +31,7 @@ import torch
 from tqdm import tqdm
 
 from stillbox_gen.conventions import MAX_DEPTH
+from stillbox_gen.formats import temp_path
 
 from . import video
 from .checkpoint import depth_network
@@ -44,6 +45,7 @@ from .multishift import (
     MAX_SHIFTS,
     DepthScale,
     ShiftPlanner,
+    displacements,
     fuse,
 )
 
@@ -308,7 +310,7 @@ def frame_depth(
 
 def run(job: Job, o: InferOptions) -> dict:
     """Depth of every frame of ``job`` into ``o.out``; returns the summary (also summary.json)."""
-    tmp = o.out.parent / f".{o.out.name}.partial-{os.getpid()}"
+    tmp = temp_path(o.out)
     o.out.parent.mkdir(parents=True, exist_ok=True)
     try:
         summary = _loop(job, o, tmp)
@@ -340,7 +342,7 @@ def _loop(job: Job, o: InferOptions, folder: Path) -> dict:
             if t == 0:
                 outputs.row(0, "first frame (no earlier frame)")
                 continue
-            available = video.displacements(job.positions, t, len(ring) - 1)
+            available = displacements(job.positions, t, len(ring) - 1)
             est = frame_depth(planner, available, lambda s: network_outputs(*net, ring, s))
             if est is None:
                 stats["no_motion"] += 1

@@ -150,6 +150,14 @@ def kmeans_1d(values: torch.Tensor, n: int, iters: int = 50) -> torch.Tensor:
     return torch.unique(c)  # sorted, and merged if two ended equal
 
 
+def displacements(positions: np.ndarray, t: int, max_shift: int) -> np.ndarray:
+    """d(t, δ) = |p_t − p_{t−δ}| (m) for δ = 1..min(t, max_shift), ``positions`` (frames, 3) the
+    camera path in metres."""
+    n = min(t, max_shift)
+    back = positions[t - np.arange(1, n + 1)]
+    return np.linalg.norm(positions[t] - back, axis=1)
+
+
 def closest_shift(target_d: float, available: np.ndarray) -> int:
     """The frame shift (1-based) whose displacement is closest to ``target_d`` (m).
 

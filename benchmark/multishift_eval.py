@@ -29,7 +29,6 @@ from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
 import torch
 from tqdm import tqdm
 
@@ -39,7 +38,14 @@ from . import metrics, runfolder
 from .checkpoint import depth_network
 from .config import MULTISHIFT_MAX_SHIFT
 from .infer import frame_depth, network_outputs
-from .multishift import BETA_MEAN, EMA_LAMBDA, MAX_SHIFTS, ShiftPlanner, closest_shift
+from .multishift import (
+    BETA_MEAN,
+    EMA_LAMBDA,
+    MAX_SHIFTS,
+    ShiftPlanner,
+    closest_shift,
+    displacements,
+)
 
 BANDS = ((0.0, 10.0), (10.0, 25.0), (25.0, 50.0), (50.0, 100.0))  # ground-truth depth, metres
 SCORES = ("mae", "mre", "mle")
@@ -83,12 +89,6 @@ def sequences(data: Path, split: str, max_shift: int, limit: int | None) -> list
     return scenes
 
 
-def displacements(scene: Scene, t: int, max_shift: int) -> np.ndarray:
-    """d(t, δ) = |position(t) − position(t − δ)| (m) for δ = 1..min(t, max_shift)."""
-    p = scene.cam2world[:, :3, 3]
-    return np.array([np.linalg.norm(p[t] - p[t - d]) for d in range(1, min(t, max_shift) + 1)])
-
-
 class Tally:
     """Per-image scores of one (checkpoint, strategy), and its time and shifts."""
 
@@ -129,11 +129,12 @@ def run_sequence(
 ) -> None:  # fmt: skip
     """One strategy over one sequence; frames t ≥ max_shift are added to ``tally`` (``ema``,
     ``beta_mean``: the planner's, multishift.ShiftPlanner)."""
-    nominal = closest_shift(scale.d0, displacements(scene, max_shift, max_shift))
+    path = scene.cam2world[:, :3, 3]  # camera positions, metres
+    nominal = closest_shift(scale.d0, displacements(path, max_shift, max_shift))
     fixed = nominal if strategy.n == 0 else None
     planner = ShiftPlanner(max(1, strategy.n), scale, ema, fixed, beta_mean)
     for t in range(1, scene.frames):
-        available = displacements(scene, t, max_shift)
+        available = displacements(path, t, max_shift)
         window = frames[max(0, t - max_shift) : t + 1]
         est = frame_depth(planner, available, lambda s, w=window: network_outputs(*net, w, s))
         if est is None or t < max_shift:

@@ -33,7 +33,6 @@ from __future__ import annotations
 import csv
 import io
 import json
-import os
 import shutil
 from collections.abc import Callable
 from pathlib import Path
@@ -42,7 +41,7 @@ from typing import BinaryIO
 import numpy as np
 import torch
 
-from stillbox_gen.formats import atomic_write_text
+from stillbox_gen.formats import TEMP_INFIX, atomic_write, atomic_write_text
 
 from .checkpoint import first_line
 
@@ -62,7 +61,6 @@ PREDICTIONS_DIR = "predictions"
 PLOTS = ("error_vs_depth", "error_vs_foe_distance", "error_vs_estimate", "samples")
 PLOTS += ("learning_curve",)
 COMPARISON = "comparison"  # compare --out DIR writes DIR/comparison.{md,csv} and the figure
-TMP_SUFFIX = ".tmp"  # atomic_write_binary writes '.<name>.tmp' next to the file first
 
 
 # ---------------------------------------------------------------- paths
@@ -167,26 +165,11 @@ def make_folder(folder: Path, flag: str = "--out") -> Path:
 def atomic_write_binary(
     path: Path, write: Callable[[BinaryIO], None], sync_folder: bool = False
 ) -> None:
-    """``write(f)`` into a temporary file beside ``path``, fsync it, rename it over ``path``
-    (then fsync the folder when ``sync_folder``): a kill or power cut leaves the old or the new
-    file, never half of one. The binary counterpart of ``formats.atomic_write_text``."""
+    """``formats.atomic_write`` into a run folder, making its folder first (ValueError naming
+    --out when it cannot)."""
     path = Path(path)
     make_folder(path.parent)
-    tmp = path.with_name(f".{path.name}{TMP_SUFFIX}")
-    try:
-        with open(tmp, "wb") as f:
-            write(f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
-    if sync_folder:
-        fd = os.open(path.parent, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
+    atomic_write(path, write, sync_folder)
 
 
 def _write_json(path: Path, obj) -> None:
@@ -226,7 +209,7 @@ def save_checkpoint(path: Path, payload: dict) -> None:
 def remove_stale_temps(folder: Path) -> list[Path]:
     """Delete the temporary files of checkpoint writes cut short by a kill; return them."""
     folder = Path(folder)
-    stale = sorted(folder.glob(f".*.pt{TMP_SUFFIX}")) if folder.is_dir() else []
+    stale = sorted(folder.glob(f".*.pt{TEMP_INFIX}*")) if folder.is_dir() else []
     for p in stale:
         p.unlink(missing_ok=True)
     return stale

@@ -17,16 +17,14 @@ from __future__ import annotations
 
 import csv
 import math
-import os
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
 
-os.environ.setdefault("OPENCV_IO_ENABLE_OPENEXR", "1")
-
-import cv2  # noqa: E402
+from stillbox_gen.camera import focal_from_fov
 
 #: image files read from a folder of frames (case-insensitive), in name order
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
@@ -132,7 +130,7 @@ def focal_px(width: int, fov_deg: float | None = None, focal: float | None = Non
     from the horizontal field of view ``fov_deg`` (degrees)."""
     if focal is not None:
         return float(focal)
-    return width / (2.0 * math.tan(math.radians(fov_deg) / 2.0))
+    return focal_from_fov(fov_deg, width)
 
 
 def crop_box(
@@ -230,13 +228,6 @@ def _row(where: str, row: list[str], line: int, header: list[str], cols: list[in
             raise ValueError(f"{where}: row {line}, column '{header[c]}': not a number '{text}'")
         out.append(value)
     return out
-
-
-def displacements(positions: np.ndarray, t: int, max_shift: int) -> np.ndarray:
-    """d(t, δ) = |p_t − p_{t−δ}| (m) for δ = 1..min(t, max_shift)."""
-    n = min(t, max_shift)
-    back = positions[t - np.arange(1, n + 1)]
-    return np.linalg.norm(positions[t] - back, axis=1)
 
 
 # ---------------------------------------------------------------- outputs

@@ -10,6 +10,7 @@ is measured in the same invocation.
 from __future__ import annotations
 
 import csv
+import io
 import tempfile
 import time
 from dataclasses import dataclass
@@ -19,7 +20,9 @@ import numpy as np
 
 from . import config, formats, generate, layout
 from .dataset import Dataset
+from .errors import ConfigError
 from .scene import sample_scene
+from .worker_setup import worker_setup
 from .workers import process_pool, render_scene
 
 REFERENCE_SAMPLES = 256
@@ -33,7 +36,7 @@ def configurations(names: list[str]) -> dict[str, dict]:
     table = {**{q: dict(v) for q, v in config.QUALITY.items()}, "plain": dict(PLAIN)}
     unknown = [n for n in names if n not in table]
     if unknown:
-        raise config.ConfigError(
+        raise ConfigError(
             f"--configs: unknown {', '.join(unknown)} (choose from {', '.join(table)})"
         )
     return {n: table[n] for n in names}
@@ -70,12 +73,13 @@ def reference_psnr(
 ) -> float:
     """Mean PSNR of the dataset's frames against REFERENCE_SAMPLES-sample renders of them
     (on the same Cycles ``device``)."""
-    ref_render = {**cfg.to_dict()["render"], "samples": REFERENCE_SAMPLES, "denoise": False}
-    c = cfg.camera
-    init = (ref_render, c.width, c.height, 0, cfg.materials.textures_dir, device)
+    reference = config.replace(cfg, render={"samples": REFERENCE_SAMPLES, "denoise": False})
     values = []
     ds = Dataset(root)
-    with tempfile.TemporaryDirectory() as tmp, process_pool(workers, init) as pool:
+    with (
+        tempfile.TemporaryDirectory() as tmp,
+        process_pool(workers, worker_setup(reference, 0, device)) as pool,
+    ):
         jobs = []
         for k in range(scenes):
             spec = sample_scene(cfg, k).to_dict()
@@ -156,11 +160,11 @@ def markdown_table(rows: list[BenchRow]) -> str:
 
 
 def write_csv(rows: list[BenchRow], path: Path) -> None:
+    """The rows as CSV (one column per BenchRow field), written atomically."""
     fields = list(BenchRow.__dataclass_fields__)
-    tmp = path.with_name(path.name + ".tmp")
-    with tmp.open("w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=fields)
-        w.writeheader()
-        for r in rows:
-            w.writerow({k: getattr(r, k) for k in fields})
-    tmp.replace(path)
+    text = io.StringIO(newline="")
+    w = csv.DictWriter(text, fieldnames=fields)
+    w.writeheader()
+    for r in rows:
+        w.writerow({k: getattr(r, k) for k in fields})
+    formats.atomic_write_text(path, text.getvalue())

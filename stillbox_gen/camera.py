@@ -162,16 +162,27 @@ def pixel_ray(K: ArrayLike, u: float, v: float) -> list[float]:
     return [(u - float(skew) * y - float(cx)) / float(f), y, 1.0]
 
 
+def pixel_grid(width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel-centre coordinates ``(u, v)``, each (H, W) float64: u the column (x, right), v the
+    row (y, down), integers at pixel centres (OpenCV convention)."""
+    return np.meshgrid(np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64))
+
+
+def pixel_rays(K: ArrayLike, width: int, height: int) -> np.ndarray:
+    """Camera-frame ray directions (H, W, 3) ``K^-1 [u, v, 1]`` of every pixel centre (z = 1):
+    :func:`pixel_ray` for whole images, in numpy (not portable bits: for measurements only)."""
+    u, v = pixel_grid(width, height)
+    pix = np.stack([u, v, np.ones_like(u)], axis=-1)
+    return pix @ np.linalg.inv(np.asarray(K, dtype=np.float64)).T
+
+
 def project(points_cam: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """Pixel coordinates (N, 2) of camera-frame points (N, 3) with z > 0."""
+    """Pixel coordinates (..., 2) of camera-frame points (..., 3) with z > 0."""
     p = points_cam @ K.T
-    return p[:, :2] / p[:, 2:3]
+    return p[..., :2] / p[..., 2:3]
 
 
 def backproject(depth: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """Camera-frame points (H, W, 3) of a planar depth map (H, W) in metres."""
+    """Camera-frame points (H, W, 3), metres, of a planar depth map (H, W) in metres."""
     h, w = depth.shape
-    u, v = np.meshgrid(np.arange(w, dtype=float), np.arange(h, dtype=float))
-    x = (u - K[0, 2]) / K[0, 0] * depth
-    y = (v - K[1, 2]) / K[1, 1] * depth
-    return np.stack([x, y, depth], axis=-1)
+    return pixel_rays(K, w, h) * np.asarray(depth, dtype=np.float64)[..., None]

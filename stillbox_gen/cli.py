@@ -17,9 +17,9 @@ from typing import TYPE_CHECKING
 import click
 
 from . import config
-from .config import ConfigError
 from .conventions import MAX_DEPTH, NOMINAL_SHIFT, default_root
-from .formats import DatasetError, disk_full_message, is_disk_full
+from .errors import ConfigError, DatasetError
+from .formats import disk_full_message, is_disk_full
 from .workers import Terminated, sigterm_as_interrupt
 
 if TYPE_CHECKING:
@@ -72,36 +72,11 @@ class PathArg(click.Path):
         return super().convert(value, param, ctx)
 
 
-def parse_resolution(value: str) -> tuple[int, int]:
-    text = value.lower().strip()
-    try:
-        w, h = (int(v) for v in text.split("x")) if "x" in text else (int(text), int(text))
-    except ValueError:
-        raise ConfigError(f"--res: expected N or WxH in pixels, got '{value}'") from None
-    if w <= 0 or h <= 0:
-        raise ConfigError(f"--res: width and height must be positive, got '{value}'")
-    return w, h
-
-
-def parse_point(value: str) -> tuple[float, float]:
-    try:
-        cx, cy = (float(v) for v in value.split(","))
-    except ValueError:
-        raise ConfigError(f"--principal-point: expected CX,CY in pixels, got '{value}'") from None
-    return cx, cy
-
-
 def _show(value: object) -> str:
     """A default as the help shows it: numbers without trailing zeros, sequences comma-joined."""
     if isinstance(value, tuple):
         return ",".join(_show(v) for v in value)
     return f"{value:g}" if isinstance(value, float) else str(value)
-
-
-def _preset(section: type, name: str) -> str:
-    """The help's ``[default: preset, V]``: V is the dataclass default (what a preset that does
-    not set the key gives, the stillbox preset included)."""
-    return f"[default: preset, {_show(getattr(section, name))}]"
 
 
 def _run_default(name: str) -> object:
@@ -111,7 +86,6 @@ def _run_default(name: str) -> object:
     return next(f.default for f in dataclasses.fields(RunOptions) if f.name == name)
 
 
-_CAM, _MATS, _RENDER = config.CameraConfig, config.MaterialsConfig, config.RenderConfig
 _DEVICE = click.option(
     "--device",
     type=click.Choice(config.DEVICES),
@@ -121,140 +95,144 @@ _DEVICE = click.option(
     + ", ".join(b.lower() for b in config.GPU_BACKENDS)
     + " with a device Cycles finds, else cpu. Changes no scene.",
 )
-_RES = f"{_CAM.width}" if _CAM.width == _CAM.height else f"{_CAM.width}x{_CAM.height}"
 DEFAULT_SCENES = 100  # --scenes
 DEFAULT_FIXED_SCENES = 1  # --scenes of a fixed scene (objects.fixed): every scene is the same
 
+# generate's options that set no config field (those are declared with their field: config.Flag),
+# with their place in generate --help (the order of config.Flag).
+_RUN_OPTIONS = [
+    (
+        20,
+        click.option(
+            "--scenes",
+            type=int,
+            help=f"Number of scenes.  [default: {DEFAULT_SCENES}; {DEFAULT_FIXED_SCENES} with a "
+            "fixed scene (objects.fixed, e.g. --preset toy-flower)]",
+        ),
+    ),
+    (
+        30,
+        click.option(
+            "--out", type=PathArg(), help="Output folder.  [default: data/stillbox-<W>[x<H>]]"
+        ),
+    ),
+    (
+        50,
+        click.option(
+            "--workers",
+            type=int,
+            default=_run_default("workers"),
+            show_default=True,
+            help="Blender worker processes.",
+        ),
+    ),
+    (
+        60,
+        click.option(
+            "--threads",
+            type=int,
+            default=_run_default("threads"),
+            show_default=True,
+            help="Cycles threads per worker (0 = all cores).",
+        ),
+    ),
+    (70, _DEVICE),
+    (
+        180,
+        click.option(
+            "--quality",
+            type=click.Choice(list(config.QUALITY)),
+            help="Samples per pixel (anti-aliasing; the shading has no noise): "
+            + ", ".join(f"{q} {v['samples']}" for q, v in config.QUALITY.items())
+            + " (README has the measured costs).  [default: preset]",
+        ),
+    ),
+    (
+        230,
+        click.option(
+            "--shard",
+            help="I/N: render only scenes k with k % N == I (0 <= I < N), for job arrays. Into "
+            "one shared folder: the last shard to finish indexes it (or `stillbox-gen index "
+            "OUT`); into separate folders: join them with `stillbox-gen merge OUT FOLDERS...`.",
+        ),
+    ),
+    (
+        240,
+        click.option(
+            "--scene-timeout",
+            type=float,
+            default=_run_default("scene_timeout"),
+            show_default=True,
+            help="Seconds without any finished scene before the workers are replaced and their "
+            "scenes retried (watchdog for hung workers).",
+        ),
+    ),
+    (
+        250,
+        click.option(
+            "--backend",
+            type=click.Choice(["local", "ray"]),
+            default=_run_default("backend"),
+            show_default=True,
+            help="local: Blender processes on this machine; ray: Ray actors on a Ray cluster "
+            "(pip install 'stillbox-gen[ray]'), each using --threads CPUs (1 when 0).",
+        ),
+    ),
+    (
+        260,
+        click.option(
+            "--ray-address",
+            help="Ray cluster to join (auto, HOST:PORT or ray://HOST:PORT) with --backend ray.  "
+            "[default: start a local Ray instance]",
+        ),
+    ),
+    (270, click.option("--quiet", is_flag=True, help="No progress bar.")),
+]
+
+
+def _dest(fl: config.Flag) -> str:
+    """The key of a flag's value in the options dict (``--rotation-noise``: rotation_noise)."""
+    return fl.name.lstrip("-").replace("-", "_")
+
+
+def _field_defaults(key: str, fl: config.Flag) -> list:
+    """The defaults of the fields a flag sets (the dataclass defaults, as a preset that does not
+    set the key gives them)."""
+    section, _, name = key.rpartition(".")
+    owner = config.SECTIONS[section] if section else config.DatasetConfig
+    defaults = {f.name: f.default for f in dataclasses.fields(owner)}
+    return [defaults[n] for n in fl.fields or (name,)]
+
+
+def _flag_option(key: str, fl: config.Flag):
+    """The click option of a config field's flag, its help ending in the default note."""
+    values = _field_defaults(key, fl)
+    shown = _show(values[0]) if len(set(values)) == 1 else "x".join(_show(v) for v in values)
+    notes = {"preset": f"  [default: preset, {shown}]", "plain": f"  [default: {shown}]"}
+    kind = {int: int, float: float, str: None, "path": PathArg()}
+    attrs: dict = {"help": fl.help + notes.get(fl.note, "")}
+    if fl.is_flag:
+        attrs["is_flag"] = True
+    elif isinstance(fl.type, tuple):
+        attrs["type"] = click.Choice(fl.type)
+    elif kind[fl.type] is not None:
+        attrs["type"] = kind[fl.type]
+    if fl.note == "click":
+        attrs.update(default=values[0], show_default=True)
+    return click.option(fl.name, **attrs)
+
+
+def _generate_options(command):
+    """``command`` with every generate option, in the order of its --help: the flags of config
+    fields (config.Flag) and _RUN_OPTIONS."""
+    flags = [(fl.order, _flag_option(key, fl)) for key, fl in config.config_flags().items()]
+    for _, option in sorted([*flags, *_RUN_OPTIONS], key=lambda o: o[0], reverse=True):
+        command = option(command)
+    return command
+
 
 @cli.command()
-@click.option("--res", help=f"Frame size in pixels: N (square) or WxH.  [default: preset, {_RES}]")
-@click.option(
-    "--scenes",
-    type=int,
-    help=f"Number of scenes.  [default: {DEFAULT_SCENES}; {DEFAULT_FIXED_SCENES} with a fixed "
-    "scene (objects.fixed, e.g. --preset toy-flower)]",
-)
-@click.option(
-    "--out",
-    type=PathArg(),
-    help="Output folder.  [default: data/stillbox-<W>[x<H>]]",
-)
-@click.option(
-    "--seed",
-    type=int,
-    default=config.DatasetConfig.seed,
-    show_default=True,
-    help="Dataset seed; scene k depends only on (seed, k).",
-)
-@click.option(
-    "--workers",
-    type=int,
-    default=_run_default("workers"),
-    show_default=True,
-    help="Blender worker processes.",
-)
-@click.option(
-    "--threads",
-    type=int,
-    default=_run_default("threads"),
-    show_default=True,
-    help="Cycles threads per worker (0 = all cores).",
-)
-@_DEVICE
-@click.option(
-    "--preset",
-    default=config.DatasetConfig.preset,
-    show_default=True,
-    help="Preset name in scene_presets/ or path to a .toml file.",
-)
-@click.option(
-    "--fov", type=float, help=f"Horizontal field of view, degrees.  {_preset(_CAM, 'fov_deg')}"
-)
-@click.option("--focal", type=float, help="Focal length in pixels (instead of --fov).")
-@click.option(
-    "--principal-point",
-    help="CX,CY in pixels, pixel-centre convention.  [default: ((W-1)/2, (H-1)/2)]",
-)
-@click.option("--frames", type=int, help=f"Frames per scene.  {_preset(_CAM, 'frames')}")
-@click.option(
-    "--displacement",
-    type=float,
-    help=f"Camera displacement per frame, metres.  {_preset(_CAM, 'displacement')}",
-)
-@click.option(
-    "--textures",
-    type=PathArg(),
-    help=f"Folder of your photos used as textures (texture ratio {_show(_MATS.texture_ratio)}).  "
-    "[default: the photos bundled with bpy]",
-)
-@click.option(
-    "--photos",
-    type=click.Choice(config.PHOTO_SOURCES),
-    help="Without --textures: bundled photos, or none (procedural patterns only).  "
-    + _preset(_MATS, "photos"),
-)
-@click.option(
-    "--rotation-noise",
-    type=float,
-    help=f"Per-frame orientation noise std, degrees.  {_preset(_CAM, 'rotation_noise_deg')}",
-)
-@click.option(
-    "--rotation-speed",
-    type=float,
-    help="Constant camera rotation, degrees per frame (unstabilised).  "
-    + _preset(_CAM, "rotation_speed_deg"),
-)
-@click.option(
-    "--quality",
-    type=click.Choice(list(config.QUALITY)),
-    help="Samples per pixel (anti-aliasing; the shading has no noise): "
-    + ", ".join(f"{q} {v['samples']}" for q, v in config.QUALITY.items())
-    + " (README has the measured costs).  [default: preset]",
-)
-@click.option("--samples", type=int, help="Cycles samples per pixel (after --quality).")
-@click.option(
-    "--image-format",
-    type=click.Choice(config.IMAGE_FORMATS),
-    help=f"RGB file format.  [default: {_RENDER.image_format}]",
-)
-@click.option(
-    "--legacy",
-    is_flag=True,
-    help="Also write .jpg frames and .npy depth for the original DepthNet code.",
-)
-@click.option(
-    "--split",
-    help="Shares of scenes in train,val,test (by scene, from (seed, k)).  "
-    f"[default: {_show(config.DatasetConfig.split)}]",
-)
-@click.option(
-    "--shard",
-    help="I/N: render only scenes k with k % N == I (0 <= I < N), for job arrays. Into one "
-    "shared folder: the last shard to finish indexes it (or `stillbox-gen index OUT`); into "
-    "separate folders: join them with `stillbox-gen merge OUT FOLDERS...`.",
-)
-@click.option(
-    "--scene-timeout",
-    type=float,
-    default=_run_default("scene_timeout"),
-    show_default=True,
-    help="Seconds without any finished scene before the workers are replaced and their "
-    "scenes retried (watchdog for hung workers).",
-)
-@click.option(
-    "--backend",
-    type=click.Choice(["local", "ray"]),
-    default=_run_default("backend"),
-    show_default=True,
-    help="local: Blender processes on this machine; ray: Ray actors on a Ray cluster "
-    "(pip install 'stillbox-gen[ray]'), each using --threads CPUs (1 when 0).",
-)
-@click.option(
-    "--ray-address",
-    help="Ray cluster to join (auto, HOST:PORT or ray://HOST:PORT) with --backend ray.  "
-    "[default: start a local Ray instance]",
-)
-@click.option("--quiet", is_flag=True, help="No progress bar.")
+@_generate_options
 def generate(**o) -> None:
     """Render a dataset (resumes when --out holds an unfinished one with the same parameters)."""
     from .generate import generate as run
@@ -360,50 +338,26 @@ def merge(out: Path, sources: tuple[Path, ...]) -> None:
 
 def build_config(o: dict) -> config.DatasetConfig:
     """The dataset config of the generate options ``o``: the preset with the flags' values
-    over it, validated (ConfigError naming the flag, or the preset file and key)."""
+    (config.Flag: each sets its fields) over it, validated (ConfigError naming the flag, or the
+    preset file and key)."""
     cfg = config.load_preset(o["preset"])
-    cam: dict = {}
-    if o["res"] is not None:
-        cam["width"], cam["height"] = parse_resolution(o["res"])
     if o["fov"] is not None and o["focal"] is not None:
         raise ConfigError("--fov and --focal: give one or the other")
-    if o["fov"] is not None:
-        cam["fov_deg"], cam["focal_px"] = o["fov"], None
-    if o["focal"] is not None:
-        cam["focal_px"] = o["focal"]
-    if o["principal_point"]:
-        cam["principal_point"] = parse_point(o["principal_point"])
-    for flag, key in (
-        ("frames", "frames"),
-        ("displacement", "displacement"),
-        ("rotation_noise", "rotation_noise_deg"),
-        ("rotation_speed", "rotation_speed_deg"),
-    ):
-        if o[flag] is not None:
-            cam[key] = o[flag]
-    render = dict(config.QUALITY[o["quality"]]) if o["quality"] else {}
-    render.update({k: o[k] for k in ("samples", "image_format") if o[k] is not None})
-    if o["legacy"]:
-        render["legacy"] = True
-    mats = {"photos": o["photos"]} if o["photos"] else {}
-    if o["textures"] is not None:
-        mats["textures_dir"] = str(Path(o["textures"]).resolve())
-        mats["texture_files"] = config.list_texture_files(str(o["textures"]))
-    cfg = config.replace(cfg, camera=cam, render=render, materials=mats)
-    cfg = dataclasses.replace(cfg, seed=o["seed"])
-    if o["split"]:
-        try:
-            shares = tuple(float(v) for v in o["split"].split(","))
-        except ValueError:
-            raise ConfigError(
-                f"--split: expected TRAIN,VAL,TEST shares, got '{o['split']}'"
-            ) from None
-        cfg = dataclasses.replace(cfg, split=shares)
-    given = {
-        f"{section}.{key}"
-        for section, values in (("camera", cam), ("render", render), ("materials", mats))
-        for key in values
-    }
+    sections: dict[str, dict] = {name: {} for name in config.SECTIONS}
+    if o["quality"]:
+        sections["render"].update(config.QUALITY[o["quality"]])
+    top: dict = {}
+    for key, fl in config.config_flags().items():
+        value = o[_dest(fl)]
+        if key == "preset" or value is None or value is False:  # not given
+            continue
+        section, _, name = key.rpartition(".")
+        value = fl.parse(value) if fl.parse else value
+        names = fl.fields or (name,)
+        updates = dict(zip(names, value if len(names) > 1 else (value,), strict=True))
+        (sections[section] if section else top).update({**updates, **dict(fl.also)})
+    cfg = dataclasses.replace(config.replace(cfg, **sections), **top)
+    given = {f"{section}.{key}" for section, values in sections.items() for key in values}
     config.validate(cfg, origin=config.preset_origin(o["preset"]), given=given)
     if cfg.objects.fixed is not None:  # its camera path against its surfaces, before any file
         from .scene import sample_scene
@@ -515,7 +469,8 @@ def preview(dataset: Path, out: Path, scenes: int, max_depth: float) -> None:
 def stats(dataset: Path, scenes: int, shift: int, flicker: int, out, max_depth: float) -> None:
     """Data-quality report: depth bands, walls vs objects, true flow, photometric residuals
     (and render flicker), beside StillBox's published figures; writes stats.json, stats.png."""
-    from .stats import run, table
+    from .stats.report import table
+    from .stats.run import run
 
     with reading("DATASET"):
         result = run(dataset, scenes, shift, flicker, out, max_depth, progress=True)
@@ -616,7 +571,6 @@ def reading(argument: str | None = None):
 
 
 def main(argv: list[str] | None = None) -> None:
-    os.environ.setdefault("OPENCV_IO_ENABLE_OPENEXR", "1")
     try:
         with sigterm_as_interrupt():
             cli.main(args=argv, prog_name="stillbox-gen", standalone_mode=False)

@@ -21,6 +21,8 @@ from pathlib import Path
 import numpy as np
 
 from . import camera
+from .arguments import parse_point, parse_resolution, parse_shares
+from .errors import ConfigError
 
 PRIMITIVE_KINDS = ("cube", "sphere", "cone", "torus", "cylinder", "slab")  # objects.kinds default
 # Every shape kind (shapes.py): the default draw above, plus "plane" (a flat rectangle, e.g. the
@@ -37,10 +39,6 @@ PATTERNS = ("noise", "voronoi", "wave", "magic", "checker", "brick", "gradient_s
 # The last three have hard edges that alias at 1 sample (at 128 px, 1 sample + denoiser vs 256
 # samples: checker/brick/stripes 19-28 dB, noise/Voronoi 29-34 dB), so they are opt-in.
 SMOOTH_PATTERNS = PATTERNS[:4]
-
-
-class ConfigError(ValueError):
-    """A user mistake in a preset file or a command-line flag (message names it)."""
 
 
 # Upper bounds of every size and count a user sets, by config key ("section.name") or run option
@@ -68,24 +66,119 @@ def limit_problem(key: str, value: int) -> str | None:
     return f"must be at most {most:,} {unit}, got {value:,}"
 
 
+# ---------------------------------------------------------------- command-line flags
+
+
+@dataclass(frozen=True)
+class Flag:
+    """The ``stillbox-gen generate`` option that sets a config field, declared once in the
+    field's metadata (:func:`flag`); stillbox_gen.cli makes the click option of it and
+    ``build_config`` applies it, and error messages about the field name it (FLAGS)."""
+
+    name: str  # e.g. "--frames"
+    help: str  # the --help text, without the default note
+    order: int  # position in generate --help among every generate option (see stillbox_gen.cli)
+    type: object = str  # int, float, str, "path" (a file or folder) or a tuple of choices
+    parse: Callable | None = None  # text -> value (a tuple of values for several fields)
+    fields: tuple[str, ...] = ()  # the fields it sets when more than its own (e.g. --res)
+    also: tuple[tuple[str, object], ...] = ()  # (field, value) set with it (--fov: focal_px)
+    # "preset": help ends "[default: preset, V]" (V: the field's default, what a preset that
+    # does not set the key gives); "plain": "[default: V]"; "click": click shows the default,
+    # which the option takes (the flag is then always given); "": no note.
+    note: str = ""
+    is_flag: bool = False  # an on/off switch setting True
+
+
+def flag(name: str, help: str, order: int, **options) -> dict:
+    """Field metadata declaring the command-line flag that sets the field (:class:`Flag`)."""
+    return {"flag": Flag(name, help, order, **options)}
+
+
+def _textures(path) -> tuple[str, tuple[str, ...]]:
+    """--textures DIR -> (materials.textures_dir, materials.texture_files)."""
+    from pathlib import Path as _Path
+
+    return str(_Path(path).resolve()), list_texture_files(str(path))
+
+
 @dataclass(frozen=True)
 class CameraConfig:
     """Intrinsics and motion: angles in degrees, distances in metres, OpenCV pixel convention."""
 
-    width: int = 64
+    width: int = field(
+        default=64,
+        metadata=flag(
+            "--res",
+            "Frame size in pixels: N (square) or WxH.",
+            10,
+            parse=parse_resolution,
+            fields=("width", "height"),
+            note="preset",
+        ),
+    )
     height: int = 64
-    fov_deg: float = 90.0  # horizontal; ignored when focal_px is set
-    focal_px: float | None = None
-    principal_point: tuple[float, float] | None = None  # None = centred ((W-1)/2, (H-1)/2)
-    frames: int = 10
-    displacement: float = 0.1  # metres per frame
+    fov_deg: float = field(  # horizontal; ignored when focal_px is set
+        default=90.0,
+        metadata=flag(
+            "--fov",
+            "Horizontal field of view, degrees.",
+            90,
+            type=float,
+            also=(("focal_px", None),),
+            note="preset",
+        ),
+    )
+    focal_px: float | None = field(
+        default=None,
+        metadata=flag("--focal", "Focal length in pixels (instead of --fov).", 100, type=float),
+    )
+    principal_point: tuple[float, float] | None = field(  # None = centred ((W-1)/2, (H-1)/2)
+        default=None,
+        metadata=flag(
+            "--principal-point",
+            "CX,CY in pixels, pixel-centre convention.  [default: ((W-1)/2, (H-1)/2)]",
+            110,
+            parse=parse_point,
+        ),
+    )
+    frames: int = field(
+        default=10, metadata=flag("--frames", "Frames per scene.", 120, type=int, note="preset")
+    )
+    displacement: float = field(  # metres per frame
+        default=0.1,
+        metadata=flag(
+            "--displacement",
+            "Camera displacement per frame, metres.",
+            130,
+            type=float,
+            note="preset",
+        ),
+    )
     time_step: float = 1.0 / 30.0  # seconds per frame; speed = displacement / time_step
     random_orientation: bool = True  # fixed random orientation per scene (else world axes)
     # Direction of motion [x, y, z] in the first frame's camera axes (x right, y down, z forward;
     # normalised, length = displacement), or None: a uniformly random direction per scene.
     direction: tuple[float, float, float] | None = None
-    rotation_noise_deg: float = 0.0  # std of per-frame orientation noise (thesis 6.4)
-    rotation_speed_deg: float = 0.0  # constant angular speed per frame (unstabilised camera)
+    rotation_noise_deg: float = field(  # std of per-frame orientation noise (thesis 6.4)
+        default=0.0,
+        metadata=flag(
+            "--rotation-noise",
+            "Per-frame orientation noise std, degrees.",
+            160,
+            type=float,
+            note="preset",
+        ),
+    )
+    rotation_speed_deg: float = field(  # constant angular speed per frame (unstabilised camera)
+        default=0.0,
+        metadata=flag(
+            "--rotation-speed",
+            "Constant camera rotation, degrees per frame (unstabilised).",
+            170,
+            type=float,
+            note="preset",
+        ),
+    )
 
     def focal(self) -> float:
         if self.focal_px is not None:
@@ -123,8 +216,28 @@ class MaterialsConfig:
     glossy_ratio: float = 0.3  # share of surfaces with low roughness
     mirror_ratio: float = 0.05  # share of objects that are metallic mirrors
     patterns: tuple[str, ...] = SMOOTH_PATTERNS  # procedural patterns drawn uniformly
-    photos: str = "bundled"  # without --textures: "bundled" photos or "none" (patterns only)
-    textures_dir: str | None = None
+    photos: str = field(  # without --textures: "bundled" photos or "none" (patterns only)
+        default="bundled",
+        metadata=flag(
+            "--photos",
+            "Without --textures: bundled photos, or none (procedural patterns only).",
+            150,
+            type=PHOTO_SOURCES,
+            note="preset",
+        ),
+    )
+    textures_dir: str | None = field(
+        default=None,
+        metadata=flag(
+            "--textures",
+            f"Folder of your photos used as textures (texture ratio {texture_ratio:g}).  "
+            "[default: the photos bundled with bpy]",
+            140,
+            type="path",
+            parse=_textures,
+            fields=("textures_dir", "texture_files"),
+        ),
+    )
     texture_files: tuple[str, ...] = ()  # names relative to textures_dir, sorted
 
 
@@ -160,15 +273,29 @@ class RenderConfig:
     ``max_bounces`` counts glossy bounces under "direct" (mirrors need 1)."""
 
     shading: str = "direct"
-    samples: int = 4  # per pixel, box filter: anti-aliasing by area integration
+    samples: int = field(  # per pixel, box filter: anti-aliasing by area integration
+        default=4,
+        metadata=flag("--samples", "Cycles samples per pixel (after --quality).", 190, type=int),
+    )
     denoise: bool = False  # OpenImageDenoise (albedo + normal guided, fast prefilter)
     denoise_quality: str = "auto"
     max_bounces: int = 1
     persistent: bool = True  # keep scene data between the frames of a scene (same pixels)
     max_distance: float = 200.0  # metres, camera clip end; farther surfaces are misses
     near_clip: float = 0.05  # metres
-    image_format: str = "png"  # png (lossless) or jpg
-    legacy: bool = False  # also write .jpg + .npy for the original DepthNet loaders
+    image_format: str = field(  # png (lossless) or jpg
+        default="png",
+        metadata=flag("--image-format", "RGB file format.", 200, type=IMAGE_FORMATS, note="plain"),
+    )
+    legacy: bool = field(  # also write .jpg + .npy for the original DepthNet loaders
+        default=False,
+        metadata=flag(
+            "--legacy",
+            "Also write .jpg frames and .npy depth for the original DepthNet code.",
+            210,
+            is_flag=True,
+        ),
+    )
 
 
 # --quality: render-section values (measured with `stillbox-gen bench`, see README); "default"
@@ -201,15 +328,38 @@ def denoise_quality(name: str, width: int, height: int) -> str:
 
 @dataclass(frozen=True)
 class DatasetConfig:
-    preset: str = "stillbox"
-    seed: int = 0
+    preset: str = field(
+        default="stillbox",
+        metadata=flag(
+            "--preset", "Preset name in scene_presets/ or path to a .toml file.", 80, note="click"
+        ),
+    )
+    seed: int = field(
+        default=0,
+        metadata=flag(
+            "--seed",
+            "Dataset seed; scene k depends only on (seed, k).",
+            40,
+            type=int,
+            note="click",
+        ),
+    )
     camera: CameraConfig = field(default_factory=CameraConfig)
     objects: ObjectsConfig = field(default_factory=ObjectsConfig)
     materials: MaterialsConfig = field(default_factory=MaterialsConfig)
     box: BoxConfig = field(default_factory=BoxConfig)
     light: LightConfig = field(default_factory=LightConfig)
     render: RenderConfig = field(default_factory=RenderConfig)
-    split: tuple[float, float, float] = (0.8, 0.1, 0.1)  # train / val / test shares by scene
+    split: tuple[float, float, float] = field(  # train / val / test shares by scene
+        default=(0.8, 0.1, 0.1),
+        metadata=flag(
+            "--split",
+            "Shares of scenes in train,val,test (by scene, from (seed, k)).",
+            220,
+            parse=parse_shares,
+            note="plain",
+        ),
+    )
 
     def to_dict(self) -> dict:
         """Every field, but those of OMITTED_AT_DEFAULT at their default: keys added after
@@ -400,25 +550,30 @@ def check_texture_files(cfg: MaterialsConfig, where: Callable[[str], str]) -> No
 
 # ---------------------------------------------------------------- validation
 
+
+def config_flags() -> dict[str, Flag]:
+    """{key: Flag} of every config field with a command-line flag (keys as in LIMITS:
+    "section.name", or "seed", "preset", "split" for DatasetConfig's own fields)."""
+    found = {}
+    for section, cls in [("", DatasetConfig), *SECTIONS.items()]:
+        for f in dataclasses.fields(cls):
+            if "flag" in f.metadata:
+                found[f"{section}.{f.name}" if section else f.name] = f.metadata["flag"]
+    return found
+
+
+def _flag_names() -> dict[str, str]:
+    """{key: flag name} of every field a flag sets (--res: camera.width and camera.height)."""
+    names = {}
+    for key, fl in config_flags().items():
+        section = key.rpartition(".")[0]
+        for name in fl.fields or (key.rpartition(".")[2],):
+            names[f"{section}.{name}" if section else name] = fl.name
+    return names
+
+
 # Config fields set by a command-line flag: their errors name the flag when the flag was given.
-FLAGS = {
-    "seed": "--seed",
-    "split": "--split",
-    "camera.width": "--res",
-    "camera.height": "--res",
-    "camera.fov_deg": "--fov",
-    "camera.focal_px": "--focal",
-    "camera.principal_point": "--principal-point",
-    "camera.frames": "--frames",
-    "camera.displacement": "--displacement",
-    "camera.rotation_noise_deg": "--rotation-noise",
-    "camera.rotation_speed_deg": "--rotation-speed",
-    "materials.photos": "--photos",
-    "materials.textures_dir": "--textures",
-    "materials.texture_files": "--textures",
-    "render.samples": "--samples",
-    "render.image_format": "--image-format",
-}
+FLAGS = _flag_names()
 
 
 def _namer(origin: str | None, given: Collection[str] | None = None) -> Callable[[str], str]:

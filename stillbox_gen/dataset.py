@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from . import formats, layout, manifest
-from .formats import DatasetError
+from .errors import DatasetError
 
 
 @dataclass

@@ -14,9 +14,21 @@ import hashlib
 import json
 import os
 import shutil
+from collections.abc import Callable
 from pathlib import Path, PurePosixPath
+from typing import BinaryIO
 
 import numpy as np
+
+from .errors import DatasetError
+
+# OpenCV decodes and encodes EXR files only when OPENCV_IO_ENABLE_OPENEXR is set (off by default
+# since OpenCV 4.5.2, for security: opencv/opencv#21326). OpenCV reads the variable at its first
+# EXR file, not when cv2 is imported, so setting it here, when the file formats are loaded (before
+# any EXR is read: cv2 is imported inside functions), enables it for every later use, in this
+# process and in the workers it spawns: read_exr_image (the panoramas bundled with bpy) and tests
+# reading depth maps with cv2. The dataset's depth maps are read and written with OpenEXR itself.
+os.environ.setdefault("OPENCV_IO_ENABLE_OPENEXR", "1")
 
 FORMAT_VERSION = 1
 NO_SURFACE_DEPTH = 1e10  # what Cycles writes where a ray hits nothing within max_distance
@@ -33,11 +45,6 @@ def canonical_json(obj) -> str:
 
 
 # ---------------------------------------------------------------- paths read from a dataset
-
-
-class DatasetError(ValueError):
-    """A dataset, or one of its files, that cannot be read; the message names the file (or the
-    record) and what is wrong with it. The command lines print it as a one-line user error."""
 
 
 class UnsafePathError(DatasetError):
@@ -85,23 +92,45 @@ def file_sha256(path: Path) -> str:
 # ---------------------------------------------------------------- atomic writes
 
 
-def atomic_write_bytes(path: Path, data: bytes) -> None:
-    """Write via a temporary name in the same folder, fsync, then rename. On failure the
-    temporary file is deleted, and an OSError names ``path`` (e.g. a full disk, see
-    :func:`is_disk_full`)."""
+TEMP_INFIX = ".tmp-"  # a file or folder being written: .<name>.tmp-<pid> (temp_path)
+
+
+def temp_path(path: Path) -> Path:
+    """Where ``path`` (a file or a folder) is written before it is renamed to its name: the
+    hidden ``.<name>.tmp-<pid>`` beside it, one per process (two writers never share one)."""
     path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    return path.with_name(f".{path.name}{TEMP_INFIX}{os.getpid()}")
+
+
+def atomic_write(path: Path, write: Callable[[BinaryIO], None], sync_folder: bool = False) -> None:
+    """``write(f)`` into :func:`temp_path` of ``path``, fsync it, rename it over ``path`` (then
+    fsync the folder when ``sync_folder``): a kill or power cut leaves the old file or the new
+    one, never half of one. On any failure the temporary file is deleted; an OSError names
+    ``path`` (e.g. a full disk, see :func:`is_disk_full`)."""
+    path = Path(path)
+    tmp = temp_path(path)
     try:
         with open(tmp, "wb") as f:
-            f.write(data)
+            write(f)
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
-    except OSError as e:
+    except BaseException as e:
         tmp.unlink(missing_ok=True)
-        if e.filename is None:  # a failed write() names no file
+        if isinstance(e, OSError) and e.filename is None:  # a failed write() names no file
             raise OSError(e.errno, e.strerror, str(path)) from e
         raise
+    if sync_folder:
+        fd = os.open(path.parent, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+
+
+def atomic_write_bytes(path: Path, data: bytes) -> None:
+    """:func:`atomic_write` of ``data``."""
+    atomic_write(path, lambda f: f.write(data))
 
 
 def atomic_write_text(path: Path, text: str) -> None:
@@ -198,6 +227,14 @@ def read_depth(path: Path) -> np.ndarray:
         return read_depth_exr(path)
     except Exception as e:  # noqa: BLE001 - any reader failure is the dataset's file
         raise DatasetError(f"cannot read depth '{path}' ({e})") from None
+
+
+def read_exr_image(path: Path) -> np.ndarray | None:
+    """An EXR image as OpenCV reads it (float32, BGR or BGRA channel order), None when it cannot
+    be read."""
+    import cv2
+
+    return cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
 
 
 def read_multilayer_exr(path: Path) -> dict[str, np.ndarray]:

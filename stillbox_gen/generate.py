@@ -25,10 +25,6 @@ from .lock import folder_lock
 from .scene import sample_scene
 from .workers import LocalPool
 
-# The worker entry points under their former names (tests/test_render.py renders through them).
-from .workers import init_worker as _worker_init  # noqa: F401
-from .workers import render_scene as _worker_render  # noqa: F401
-
 
 @dataclass
 class RunOptions:

@@ -1,5 +1,5 @@
-"""Where each file of a stillbox-gen dataset lives, and what a scene's record holds
-(docs/FORMAT.md). Pure functions: nothing here reads or writes a file.
+"""Where each file of a stillbox-gen dataset lives (docs/FORMAT.md); what a scene's record holds
+is stillbox_gen.record. Pure functions: nothing here reads or writes a file.
 
 ::
 
@@ -18,8 +18,6 @@
 from __future__ import annotations
 
 from pathlib import Path
-
-from . import camera, portable
 
 CHUNK_SIZE = 200  # scenes per chunk folder (the original StillBox layout)
 DATASET_JSON = "dataset.json"
@@ -80,41 +78,3 @@ def scene_files(record: dict) -> list[str]:
     """Every file name of a scene in its chunk folder (frames, depth, legacy copies), sorted."""
     names = [*record["rgb"], *record["depth_exr"], *record["imgs"], *record["depth"]]
     return sorted(set(names))
-
-
-def scene_record(spec: dict, image_format: str, legacy: bool) -> dict:
-    """The metadata.json entry of one scene, built from its SceneSpec dict.
-
-    Original StillBox keys first (imgs, depth, speed, time_step, length, orientation), then ours;
-    ``sha256`` ({file name: digest}) is added last, once the files are written.
-    """
-    cam = spec["camera"]
-    local, n = local_index(spec["index"]), len(cam["cam2world"])
-    rgb = [rgb_name(local, f, image_format) for f in range(n)]
-    exr = [depth_name(local, f) for f in range(n)]
-    w2c = [camera.invert_pose(m) for m in cam["cam2world"]]
-    displacement = portable.norm(cam["speed"]) * cam["time_step"]
-    return {
-        "imgs": [rgb_name(local, f, "jpg") for f in range(n)] if legacy else rgb,
-        "depth": [depth_name(local, f, "npy") for f in range(n)] if legacy else exr,
-        "speed": cam["speed"],
-        "time_step": cam["time_step"],
-        "length": n,
-        "orientation": cam["orientation"],
-        "index": spec["index"],
-        "scene_in_chunk": local,
-        "seed": spec["seed"],
-        "rejected": spec["rejected"],
-        "rgb": rgb,
-        "depth_exr": exr,
-        "resolution": [cam["width"], cam["height"]],
-        "K": cam["K"],
-        "displacement": displacement,
-        "cam2world": cam["cam2world"],
-        "world2cam": [m.tolist() for m in w2c],
-        "near_clip": cam["near_clip"],
-        "far_clip": cam["far_clip"],
-        "primitives": spec["primitives"],
-        "box": spec["box"],
-        "light": spec["light"],
-    }

@@ -32,7 +32,7 @@ import warnings
 from collections.abc import Iterator
 from pathlib import Path
 
-from .config import ConfigError
+from .errors import ConfigError
 from .layout import LOCK_FILE
 
 # struct flock of fcntl(F_GETLK) on Linux (x86-64 and arm64): type, whence, start, len, pid

@@ -18,9 +18,8 @@ import shutil
 from pathlib import Path
 
 from . import config, formats, layout
-from .config import ConfigError
 from .dataset import Dataset
-from .formats import DatasetError
+from .errors import ConfigError, DatasetError
 from .lock import folder_lock
 from .writer import (
     Totals,
@@ -41,7 +40,7 @@ def _info(folder: Path) -> dict:
 
 def _place(src: Path, dst: Path) -> None:
     """Hard-link (same file system) or copy ``src`` to a temporary name, then rename to ``dst``."""
-    tmp = dst.with_name(f".{dst.name}.merge-{os.getpid()}")
+    tmp = formats.temp_path(dst)
     tmp.unlink(missing_ok=True)
     try:
         os.link(src, tmp)

@@ -170,11 +170,10 @@ def load_bundled(name: str) -> np.ndarray:
     """A bundled panorama as a tone-mapped linear RGB reflectance map (H, W, 3), top row first."""
     if name not in BUNDLED_PHOTOS:
         raise ValueError(f"unknown bundled photo {name!r}")
-    os.environ.setdefault("OPENCV_IO_ENABLE_OPENEXR", "1")
-    import cv2
+    from .formats import read_exr_image
 
     path = bundled_folder() / name
-    bgr = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    bgr = read_exr_image(path)
     if bgr is None:
         raise FileNotFoundError(f"cannot read bundled photo {path}")
     return tone_map(bgr[..., :3][..., ::-1])

@@ -10,6 +10,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 from .dataset import Dataset  # noqa: E402
+from .formats import atomic_write  # noqa: E402
 
 
 def contact_sheet(root: Path | Dataset, out: Path, scenes: int, max_depth: float) -> None:
@@ -34,10 +35,7 @@ def contact_sheet(root: Path | Dataset, out: Path, scenes: int, max_depth: float
     fig.colorbar(
         image, ax=axes.ravel().tolist(), label="depth (m), clipped for display", shrink=0.8
     )
-    tmp = out.with_name(f".{out.name}.tmp.png")
     try:
-        fig.savefig(tmp, dpi=100)
-        tmp.replace(out)
+        atomic_write(out, lambda f: fig.savefig(f, format="png", dpi=100))
     finally:
         plt.close(fig)
-        tmp.unlink(missing_ok=True)  # left only when writing failed

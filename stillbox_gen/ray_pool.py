@@ -21,8 +21,10 @@ import threading
 from concurrent.futures import Future
 from pathlib import Path
 
-from .config import ConfigError, DatasetConfig
-from .workers import init_worker, render_scene, worker_init_args
+from .config import DatasetConfig
+from .errors import ConfigError
+from .worker_setup import WorkerSetup, worker_setup
+from .workers import init_worker, render_scene
 
 
 def _import_ray():
@@ -43,8 +45,8 @@ def require_ray() -> None:
 class RenderActor:
     """One Blender worker process on a Ray node (wrapped by ``ray.remote`` in RayPool)."""
 
-    def __init__(self, init_args: tuple) -> None:
-        init_worker(*init_args)
+    def __init__(self, setup: WorkerSetup) -> None:
+        init_worker(setup)
 
     def render(self, spec: dict, image_format: str, legacy: bool) -> dict:
         """Render a scene; return its statistics plus ``files``: {file name: bytes}."""
@@ -106,13 +108,13 @@ class RayPool:
             # (measured: a training job) slowed rendering 17x. Render like local workers.
             runtime_env={"env_vars": {"RAY_worker_niceness": "0"}},
         )
-        self._init_args = worker_init_args(cfg, threads)
+        self._setup = worker_setup(cfg, threads)
         self._lock = threading.Lock()
         self._recycle_after = recycle_after
         self._slots = [self._new_slot() for _ in range(workers)]
 
     def _new_slot(self) -> dict:
-        return {"actor": self._actor_cls.remote(self._init_args), "given": 0, "in_flight": 0}
+        return {"actor": self._actor_cls.remote(self._setup), "given": 0, "in_flight": 0}
 
     def submit(self, spec: dict, tmp_dir: Path, image_format: str, legacy: bool) -> Future:
         with self._lock:

@@ -13,12 +13,13 @@ from __future__ import annotations
 
 import colorsys
 import math
-from dataclasses import asdict, dataclass
 
 import numpy as np
 
 from . import camera, photos, portable, shapes
-from .config import ConfigError, DatasetConfig, MaterialsConfig, is_plain_name
+from .config import DatasetConfig, MaterialsConfig, is_plain_name
+from .errors import ConfigError
+from .record import BoxSpec, CameraSpec, LightSpec, MaterialSpec, PrimitiveSpec, SceneSpec
 
 # Pattern frequencies (features per metre), low enough that textures stay legible at 64 px with a
 # 90 deg FOV: one pixel covers distance / 32 metres, i.e. ~0.5 m on an object at 15 m and ~2 m
@@ -30,96 +31,6 @@ WALL_TEXTURE_SCALE = (0.02, 0.08)
 OBJECT_PHOTO_SCALE = (1 / 30, 1 / 5)
 WALL_PHOTO_SCALE = (1 / 250, 1 / 50)
 MAX_ATTEMPTS = 1000
-
-
-@dataclass
-class MaterialSpec:
-    """Surface description. Colours are linear RGB in [0, 1]; ``scale`` in features per metre."""
-
-    kind: str  # "procedural" | "image" | "plain"
-    pattern: str | None  # one of config.PATTERNS for procedural, else None
-    colors: list[list[float]]  # colour-ramp stops (procedural), one colour (plain), tint (image)
-    positions: list[float]  # colour-ramp stop positions in [0, 1]
-    scale: float  # texture features (or image tiles) per metre
-    detail: float  # pattern-specific: noise detail, voronoi randomness, wave distortion...
-    offset: list[float]  # texture-space offset in metres
-    rotation: list[float]  # texture-space Euler XYZ rotation, radians (no axis-aligned stripes)
-    roughness: float
-    metallic: float
-    image: str | None  # file name in the textures folder, for kind == "image"
-
-
-@dataclass
-class PrimitiveSpec:
-    kind: str  # see shapes.py for the meaning of dimensions
-    dimensions: list[float]  # local bounding box (dx, dy, dz), metres
-    location: list[float]  # world, metres
-    rotation: list[float]  # world orientation quaternion [w, x, y, z]
-    material: MaterialSpec
-
-
-@dataclass
-class BoxSpec:
-    """Axis-aligned box of walls seen from inside; walls cast no shadows."""
-
-    center: list[float]
-    half_extents: list[float]
-    material: MaterialSpec
-
-
-@dataclass
-class LightSpec:
-    sun_direction: list[float]  # unit vector along which sunlight travels (world)
-    sun_strength: float  # W/m^2
-    sun_color: list[float]
-    ambient_color: list[float]  # world background colour (reaches inside: walls cast no shadow)
-    ambient_strength: float
-
-
-@dataclass
-class CameraSpec:
-    """Intrinsics and per-frame poses. Poses are OpenCV cam2world 4x4 (row-major lists)."""
-
-    width: int
-    height: int
-    K: list[list[float]]
-    time_step: float  # seconds between frames
-    speed: list[float]  # m/s in the first frame's camera axes; frame i at i*speed*time_step
-    orientation: list[list[float]]  # per frame [w,x,y,z] of R_cam0<-cam_i, or [] if none
-    cam2world: list[list[list[float]]]
-    near_clip: float
-    far_clip: float
-
-
-@dataclass
-class SceneSpec:
-    index: int  # global scene index in the dataset
-    seed: int  # 63-bit seed of this scene (render noise is derived from it)
-    rejected: int  # sampled scenes rejected before this one (camera path hit an object)
-    camera: CameraSpec
-    primitives: list[PrimitiveSpec]
-    box: BoxSpec
-    light: LightSpec
-
-    def to_dict(self) -> dict:
-        return asdict(self)
-
-    @staticmethod
-    def from_dict(d: dict) -> SceneSpec:
-        prims = [
-            PrimitiveSpec(**{**p, "material": MaterialSpec(**p["material"])})
-            for p in d["primitives"]
-        ]
-        box = BoxSpec(**{**d["box"], "material": MaterialSpec(**d["box"]["material"])})
-        return SceneSpec(
-            index=d["index"],
-            seed=d["seed"],
-            rejected=d["rejected"],
-            camera=CameraSpec(**d["camera"]),
-            primitives=prims,
-            box=box,
-            light=LightSpec(**d["light"]),
-        )
 
 
 def _plain_floats(x) -> list:

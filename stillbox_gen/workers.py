@@ -33,7 +33,9 @@ from concurrent.futures import Future, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 
-from .config import CPU_DEVICE, GPU_BACKENDS, ConfigError, DatasetConfig
+from .config import CPU_DEVICE, GPU_BACKENDS, DatasetConfig
+from .errors import ConfigError
+from .worker_setup import WorkerSetup, worker_setup
 
 
 class Terminated(KeyboardInterrupt):
@@ -82,20 +84,11 @@ def sigterm_deferred():
             _raise_terminated(got[0])
 
 
-def init_worker(
-    render: dict,
-    width: int,
-    height: int,
-    threads: int,
-    textures: str | None,
-    device: str = CPU_DEVICE,
-):
-    """Set Cycles up once in a worker process (``render``: RenderConfig as a dict; ``threads``
-    Cycles threads, 0 = all cores; ``textures``: the --textures folder or None; ``device``:
-    CPU_DEVICE or a GPU backend, see :func:`choose_device`)."""
+def init_worker(setup: WorkerSetup) -> None:
+    """Set Cycles up once in a worker process (see stillbox_gen.worker_setup)."""
     from .blender.render import init_worker as init
 
-    init(render, width, height, threads, textures, device)
+    init(setup)
 
 
 def render_scene(spec: dict, tmp_dir: str, image_format: str, legacy: bool) -> dict:
@@ -104,12 +97,6 @@ def render_scene(spec: dict, tmp_dir: str, image_format: str, legacy: bool) -> d
     from .blender.render import render_scene as render
 
     return render(spec, tmp_dir, image_format, legacy)
-
-
-def worker_init_args(cfg: DatasetConfig, threads: int, device: str = CPU_DEVICE) -> tuple:
-    """Arguments of :func:`init_worker` for a dataset, with ``threads`` Cycles threads."""
-    c, mat = cfg.camera, cfg.materials
-    return (cfg.to_dict()["render"], c.width, c.height, threads, mat.textures_dir, device)
 
 
 @functools.cache
@@ -198,13 +185,13 @@ def _poll_parent(parent: int) -> None:
     threading.Thread(target=watch, name="exit-with-parent", daemon=True).start()
 
 
-def _init_local_worker(parent: int, *init_args) -> None:
+def _init_local_worker(parent: int, setup: WorkerSetup) -> None:
     """Initializer of a process_pool worker: die with the driver, then :func:`init_worker`."""
     exit_with_parent(parent)
-    init_worker(*init_args)
+    init_worker(setup)
 
 
-def process_pool(workers: int, init_args: tuple, recycle_after: int | None = None):
+def process_pool(workers: int, setup: WorkerSetup, recycle_after: int | None = None):
     """A ProcessPoolExecutor of ``workers`` spawned processes set up by :func:`init_worker`
     (each replaced after ``recycle_after`` scenes when given), each ending when this process
     ends (:func:`exit_with_parent`). Submit :func:`render_scene`."""
@@ -212,7 +199,7 @@ def process_pool(workers: int, init_args: tuple, recycle_after: int | None = Non
         max_workers=workers,
         mp_context=multiprocessing.get_context("spawn"),
         initializer=_init_local_worker,
-        initargs=(os.getpid(), *init_args),
+        initargs=(os.getpid(), setup),
         max_tasks_per_child=recycle_after,
     )
 
@@ -231,7 +218,7 @@ class LocalPool:
         recycle_after: int,
         device: str = CPU_DEVICE,
     ):
-        self._pool = process_pool(workers, worker_init_args(cfg, threads, device), recycle_after)
+        self._pool = process_pool(workers, worker_setup(cfg, threads, device), recycle_after)
 
     def submit(self, spec: dict, tmp_dir: Path, image_format: str, legacy: bool) -> Future:
         with sigterm_deferred():  # submit may spawn a worker

@@ -19,9 +19,11 @@ from importlib import metadata as importlib_metadata
 from pathlib import Path
 
 from . import config, formats, layout, manifest, photos
-from .config import CPU_DEVICE, ConfigError, DatasetConfig, denoise_quality
-from .formats import DatasetError
+from .arguments import check_out_folder
+from .config import CPU_DEVICE, DatasetConfig, denoise_quality
+from .errors import ConfigError, DatasetError
 from .lock import folder_lock
+from .record import scene_record
 
 # ---------------------------------------------------------------- what dataset.json says
 
@@ -126,8 +128,7 @@ def join_devices(*values: str | None) -> str:
 def prepare_output(out: Path, cfg: DatasetConfig, scenes: int, device: str = CPU_DEVICE) -> str:
     """Check --out, mark the dataset incomplete; ConfigError (nothing written) on conflicts.
     Returns its ``render.device``: ``device`` after those recorded there (join_devices)."""
-    if out.exists() and not out.is_dir():
-        raise ConfigError(f"--out: '{out}' exists and is a file, not a folder")
+    check_out_folder(out)
     existing = out / layout.DATASET_JSON
     recorded = None  # the devices of earlier runs into it
     try:
@@ -172,7 +173,8 @@ def prepare_output(out: Path, cfg: DatasetConfig, scenes: int, device: str = CPU
 def _is_own_temporary(path: Path) -> bool:
     """A dataset.json being written by another shard that started into the same new folder, or
     the lock file of a run (stillbox_gen.lock; left behind by a run killed before it wrote)."""
-    return path.name.startswith(f".{layout.DATASET_JSON}.tmp-") or path.name == layout.LOCK_FILE
+    own = f".{layout.DATASET_JSON}{formats.TEMP_INFIX}"
+    return path.name.startswith(own) or path.name == layout.LOCK_FILE
 
 
 def pending_indices(out: Path, scenes: int, shard: tuple[int, int] = (0, 1)) -> list[int]:
@@ -192,7 +194,7 @@ def commit_scene(out: Path, spec: dict, cfg: DatasetConfig) -> dict:
     then write its record (the completion mark) with the SHA-256 of every file of the scene."""
     tmp = out / layout.scene_tmp_name(spec["index"])
     chunk_dir = tmp.parent
-    record = layout.scene_record(spec, cfg.render.image_format, cfg.render.legacy)
+    record = scene_record(spec, cfg.render.image_format, cfg.render.legacy)
     record["sha256"] = scene_checksums(tmp, record)
     for f in sorted(tmp.iterdir()):
         os.replace(f, chunk_dir / f.name)

@@ -6,7 +6,6 @@ fast suite); tests using a fixture in RENDER_FIXTURES get it here, at collection
 
 from __future__ import annotations
 
-import os
 import subprocess
 import sys
 from collections.abc import Callable
@@ -15,8 +14,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-os.environ.setdefault("OPENCV_IO_ENABLE_OPENEXR", "1")
 
 CLI = [sys.executable, "-m", "stillbox_gen.cli"]
 TINY_SHARES = (0.5, 0.25, 0.25)  # train/val/test shares of tiny_dataset

@@ -182,7 +182,7 @@ def test_start_logs_cuts_a_resumed_run_back_and_a_new_one_afresh(tmp_path):
     run.mkdir()
     for step in (1, 2, 3):
         runfolder.append_row(run, runfolder.STEPS_CSV, {"step": step, "loss": 10.0 / step})
-    stale = run / "checkpoints" / ".last.pt.tmp"
+    stale = run / "checkpoints" / ".last.pt.tmp-1"
     stale.parent.mkdir(parents=True)
     stale.write_bytes(b"half")
     assert runfolder.start_logs(run, resume=True, last_step=2) == [stale]
@@ -214,7 +214,7 @@ def test_report_files_round_trip(tmp_path):
 @pytest.mark.render
 def test_stale_checkpoint_temporary_is_removed_on_start(tiny_dataset, tmp_path):
     out = tmp_path / "run"
-    stale = [out / "checkpoints" / ".last.pt.tmp", out / "checkpoints" / ".best.pt.tmp"]
+    stale = [out / "checkpoints" / ".last.pt.tmp-1", out / "checkpoints" / ".best.pt.tmp-2"]
     for p in stale:
         p.parent.mkdir(parents=True, exist_ok=True)
         p.write_bytes(b"half a checkpoint")

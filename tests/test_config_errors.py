@@ -9,12 +9,13 @@ import dataclasses
 import math
 import typing
 
+import click
 import cv2
 import numpy as np
 import pytest
 
 from stillbox_gen import cli, config
-from stillbox_gen.config import ConfigError
+from stillbox_gen.errors import ConfigError
 
 
 def build(*args) -> config.DatasetConfig:
@@ -335,3 +336,69 @@ def test_preset_photos_that_decode_are_accepted(tmp_path, photo_folder):
         tmp_path, f'[materials]\ntextures_dir = "{photo_folder}"\ntexture_files = ["good.png"]\n'
     )
     assert build("--preset", path).materials.texture_files == ("good.png",)
+
+
+# ---------------------------------------------------------------- flags declared with their field
+
+
+def test_every_config_flag_is_a_generate_option_that_sets_its_fields():
+    """Each config.Flag (field metadata) is an option of generate, and giving it sets the
+    fields it names: the flag is declared once, next to its field."""
+    options = {o for p in cli.generate.params for o in getattr(p, "opts", [])}
+    samples = {int: "7", float: "0.25", str: None}
+    checked = 0
+    for key, fl in config.config_flags().items():
+        assert fl.name in options, fl.name
+        if fl.parse or fl.is_flag or samples.get(fl.type) is None:
+            continue
+        cfg = build(fl.name, samples[fl.type])
+        section, _, name = key.rpartition(".")
+        got = getattr(getattr(cfg, section) if section else cfg, name)
+        assert got == fl.type(samples[fl.type]), key
+        checked += 1
+    assert checked >= 5
+
+
+def test_generate_help_places_are_unique():
+    """Every generate option has its own place in --help (config.Flag.order, cli._RUN_OPTIONS),
+    and --help lists them in that order."""
+    places = [fl.order for fl in config.config_flags().values()]
+    places += [order for order, _ in cli._RUN_OPTIONS]
+    assert len(places) == len(set(places))
+    shown = [p.opts[0] for p in cli.generate.params if isinstance(p, click.Option)]
+    assert shown[:4] == ["--res", "--scenes", "--out", "--seed"] and shown[-1] == "--quiet"
+
+
+def test_flags_with_several_fields_set_them_all_and_name_them_in_errors():
+    cfg = build("--res", "40x30", "--fov", "60", "--legacy", "--image-format", "jpg")
+    assert (cfg.camera.width, cfg.camera.height, cfg.camera.fov_deg) == (40, 30, 60.0)
+    assert cfg.camera.focal_px is None and cfg.render.legacy and cfg.render.image_format == "jpg"
+    assert config.FLAGS["camera.width"] == config.FLAGS["camera.height"] == "--res"
+    assert config.FLAGS["materials.texture_files"] == "--textures"
+    with pytest.raises(ConfigError, match=r"^--res: width and height must be positive"):
+        build("--res", "0x30")
+
+
+# ---------------------------------------------------------------- shared command-line parsers
+
+
+def test_resolution_parser_and_out_folder_check_are_shared_by_both_clis(tmp_path):
+    """arguments.parse_resolution is --res of stillbox-gen and of stillbox-bench infer (whose
+    multiple-of-64 rule is checked on top); check_out_folder raises each CLI's own error."""
+    from benchmark import cli as bench_cli
+    from stillbox_gen import arguments
+
+    assert arguments.parse_resolution("64") == (64, 64)
+    assert arguments.parse_resolution(" 128X64 ") == (128, 64)
+    for bad, words in (("64x", "expected N or WxH"), ("0x64", "width and height must be positive")):
+        with pytest.raises(ConfigError, match=f"^--res: {words}"):
+            arguments.parse_resolution(bad)
+        with pytest.raises(bench_cli.UserError, match=f"^--res: {words}"):
+            bench_cli._size_option(bad)
+    file = tmp_path / "f"
+    file.write_text("")
+    arguments.check_out_folder(tmp_path)  # a folder, or a missing path, is fine
+    arguments.check_out_folder(tmp_path / "new")
+    for error in (ConfigError, bench_cli.UserError):
+        with pytest.raises(error, match=f"^--out: '{file}' is a file, not a folder$"):
+            arguments.check_out_folder(file, error=error)

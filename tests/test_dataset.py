@@ -13,7 +13,9 @@ import pytest
 
 from stillbox_gen import config, layout, manifest, writer
 from stillbox_gen.dataset import Dataset
-from stillbox_gen.formats import DatasetError, write_depth_exr
+from stillbox_gen.errors import DatasetError
+from stillbox_gen.formats import write_depth_exr
+from stillbox_gen.record import scene_record
 from stillbox_gen.scene import sample_scene
 from stillbox_gen.validate import validate_dataset
 
@@ -47,7 +49,7 @@ def fake(tmp_path_factory) -> tuple[Path, config.DatasetConfig]:
         spec = sample_scene(cfg, k).to_dict()
         tmp = out / layout.scene_tmp_name(k)
         tmp.mkdir(parents=True)
-        record = layout.scene_record(spec, cfg.render.image_format, cfg.render.legacy)
+        record = scene_record(spec, cfg.render.image_format, cfg.render.legacy)
         _fake_frames(tmp, record, k)
         writer.commit_scene(out, spec, cfg)
     totals = writer.finalize(out, cfg, SCENES, {"by": "test_dataset"})

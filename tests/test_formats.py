@@ -1,20 +1,18 @@
 """On-disk formats: depth EXR, sRGB conversion, JSON, the layout's records and the parquet
 manifest."""
 
+import json
 import os
+import re
 
-os.environ["OPENCV_IO_ENABLE_OPENEXR"] = "1"  # must be set before cv2 is imported
+import cv2
+import jsonschema
+import numpy as np
+import pytest
 
-import json  # noqa: E402
-import re  # noqa: E402
-
-import cv2  # noqa: E402
-import jsonschema  # noqa: E402
-import numpy as np  # noqa: E402
-import pytest  # noqa: E402
-
-from stillbox_gen import config, formats, layout, manifest, schema, writer  # noqa: E402
-from stillbox_gen.scene import sample_scene  # noqa: E402
+from stillbox_gen import config, formats, layout, manifest, record, schema, writer
+from stillbox_gen.errors import ConfigError
+from stillbox_gen.scene import sample_scene
 
 ORIGINAL_KEYS = ["imgs", "depth", "speed", "time_step", "length", "orientation"]
 
@@ -90,6 +88,25 @@ def test_atomic_write_json_leaves_only_the_file(tmp_path):
         formats.atomic_write_json(tmp_path / "nan.json", {"x": float("nan")})
 
 
+def test_atomic_write_keeps_the_old_file_when_the_write_fails(tmp_path):
+    """A write that fails half way leaves the old file and no temporary; the temporary is
+    .<name>.tmp-<pid> beside the file (what every writer of both packages uses)."""
+    path = tmp_path / "plot.png"
+    path.write_bytes(b"old")
+    assert formats.temp_path(path) == tmp_path / f".plot.png.tmp-{os.getpid()}"
+
+    def half(f):
+        f.write(b"ne")
+        assert formats.temp_path(path).exists() and path.read_bytes() == b"old"
+        raise RuntimeError("cut")
+
+    with pytest.raises(RuntimeError, match="cut"):
+        formats.atomic_write(path, half)
+    assert [p.name for p in tmp_path.iterdir()] == ["plot.png"] and path.read_bytes() == b"old"
+    formats.atomic_write(path, lambda f: f.write(b"new"), sync_folder=True)
+    assert [p.name for p in tmp_path.iterdir()] == ["plot.png"] and path.read_bytes() == b"new"
+
+
 def test_canonical_json_is_key_order_independent():
     """canonical_json gives the same text for equal dicts with different key orders."""
     a = {"a": 1, "b": {"c": [1, 2], "d": 0.1}}
@@ -109,7 +126,7 @@ def spec(cfg):
 
 def test_scene_record_keeps_original_keys_and_names(spec):
     """Records start with the original StillBox keys and name files RGB_<ssss>_<ff>.png."""
-    rec = layout.scene_record(spec, "png", legacy=False)
+    rec = record.scene_record(spec, "png", legacy=False)
     assert list(rec)[:6] == ORIGINAL_KEYS
     assert rec["length"] == 10 and rec["scene_in_chunk"] == 5 and rec["index"] == 205
     for names in (rec["imgs"], rec["rgb"], rec["depth"], rec["depth_exr"]):
@@ -119,12 +136,12 @@ def test_scene_record_keeps_original_keys_and_names(spec):
     assert all(re.fullmatch(r"RGB_0005_\d{2}\.png", n) for n in rec["rgb"])
     assert rec["rgb"][3] == "RGB_0005_03.png"
     assert rec["depth_exr"][9] == "depth_0005_09.exr"
-    assert layout.scene_record(spec, "jpg", legacy=False)["rgb"][0] == "RGB_0005_00.jpg"
+    assert record.scene_record(spec, "jpg", legacy=False)["rgb"][0] == "RGB_0005_00.jpg"
 
 
 def test_scene_record_geometry(spec):
     """world2cam inverts cam2world for every frame and the displacement is 0.1 m."""
-    rec = layout.scene_record(spec, "png", legacy=False)
+    rec = record.scene_record(spec, "png", legacy=False)
     for c2w, w2c in zip(rec["cam2world"], rec["world2cam"], strict=True):
         np.testing.assert_allclose(np.array(w2c) @ np.array(c2w), np.eye(4), atol=1e-12)
     assert rec["displacement"] == pytest.approx(0.1, rel=1e-12)
@@ -134,16 +151,31 @@ def test_scene_record_geometry(spec):
 
 def test_scene_record_legacy_names(spec):
     """legacy=True names .jpg frames and .npy depth in imgs/depth but keeps png/exr files."""
-    rec = layout.scene_record(spec, "png", legacy=True)
+    rec = record.scene_record(spec, "png", legacy=True)
     assert rec["imgs"][2] == "RGB_0005_02.jpg" and rec["depth"][2] == "depth_0005_02.npy"
     assert all(n.endswith(".png") for n in rec["rgb"])
     assert all(n.endswith(".exr") for n in rec["depth_exr"])
 
 
+def test_spec_from_record_inverts_scene_record(spec):
+    """record -> spec gives back the spec the record was written from (through JSON, as read
+    from metadata.json), and keeps only the poses asked for; a record lacking a key is named."""
+    rec = json.loads(json.dumps(record.scene_record(spec, "png", legacy=True)))
+    assert record.spec_from_record(rec) == spec
+    two = record.spec_from_record(rec, frames=[3, 0])
+    assert two["camera"]["cam2world"] == [spec["camera"]["cam2world"][f] for f in (3, 0)]
+    assert {k: v for k, v in two.items() if k != "camera"} == {
+        k: v for k, v in spec.items() if k != "camera"
+    }
+    del rec["light"], rec["resolution"]
+    with pytest.raises(ConfigError, match="scene 205's record lacks light, resolution"):
+        record.spec_from_record(rec)
+
+
 @pytest.mark.parametrize("legacy", [False, True])
 def test_scene_record_matches_schema(spec, legacy):
     """The record is strict JSON and validates against schema.SCENE_RECORD."""
-    rec = json.loads(json.dumps(layout.scene_record(spec, "png", legacy), allow_nan=False))
+    rec = json.loads(json.dumps(record.scene_record(spec, "png", legacy), allow_nan=False))
     jsonschema.validate(rec, schema.SCENE_RECORD)
     rec["rgb"][0] = "RGB_0005.png"
     with pytest.raises(jsonschema.ValidationError):
@@ -186,7 +218,7 @@ def test_scene_checksums_cover_every_scene_file(tmp_path, spec):
     """scene_checksums hashes every file a record names (legacy copies too), by SHA-256."""
     import hashlib
 
-    rec = layout.scene_record(spec, "png", legacy=True)
+    rec = record.scene_record(spec, "png", legacy=True)
     names = layout.scene_files(rec)
     assert len(names) == 40 and names == sorted(
         set(rec["rgb"] + rec["imgs"] + rec["depth"] + rec["depth_exr"])
@@ -216,7 +248,7 @@ def test_manifest_round_trip(tmp_path, cfg):
     """write_manifest/read_manifest keep the schema and give one row per frame with right paths."""
     indices = [0, 1, 201]
     records = [
-        layout.scene_record(sample_scene(cfg, i).to_dict(), "png", legacy=False) for i in indices
+        record.scene_record(sample_scene(cfg, i).to_dict(), "png", legacy=False) for i in indices
     ]
     path = tmp_path / "manifest.parquet"
     manifest.write_manifest(path, records, seed=cfg.seed, shares=cfg.split)

@@ -160,12 +160,12 @@ import bpy
 from stillbox_gen import config
 from stillbox_gen.blender import render
 from stillbox_gen.scene import sample_scene
+from stillbox_gen.worker_setup import worker_setup
 
 dataset, out, k = Path(sys.argv[1]), sys.argv[2], int(sys.argv[3])
 settings = json.loads(sys.argv[4])
 cfg = config.from_dict(json.loads((dataset / "dataset.json").read_text())["config"])
-c = cfg.camera
-render.init_worker(cfg.to_dict()["render"], c.width, c.height, 0, cfg.materials.textures_dir)
+render.init_worker(worker_setup(cfg, threads=0))
 prefs = bpy.context.preferences
 prefs.experimental.use_cycles_debug = prefs.view.show_developer_ui = True
 for key, value in settings.items():

@@ -156,3 +156,87 @@ def test_importing_every_other_module_loads_no_bpy():
     )
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.strip() == "[]"
+
+
+# The data contract: what of stillbox_gen the benchmark may load (itself or through what it
+# imports). The reader, the conventions, the file formats and layout, the record and the camera
+# model; never the generator's config, sampling, workers, writer or Blender.
+BENCHMARK_MAY_LOAD = frozenset(
+    f"stillbox_gen{suffix}"
+    for suffix in (
+        "",
+        ".arguments",
+        ".camera",
+        ".conventions",
+        ".dataset",
+        ".errors",
+        ".formats",
+        ".layout",
+        ".lock",
+        ".manifest",
+        ".portable",
+        ".record",
+    )
+)
+BENCHMARK_MUST_NOT_LOAD = (
+    "stillbox_gen.writer",
+    "stillbox_gen.generate",
+    "stillbox_gen.workers",
+    "stillbox_gen.config",
+    "stillbox_gen.scene",
+    "stillbox_gen.photos",
+    "stillbox_gen.blender",
+)
+
+
+def reachable(graph: dict[str, set[str]], starts: set[str]) -> set[str]:
+    """Every module of ``graph`` reached from ``starts`` (themselves included)."""
+    seen: set[str] = set()
+    stack = list(starts)
+    while stack:
+        node = stack.pop()
+        if node not in seen:
+            seen.add(node)
+            stack.extend(graph.get(node, ()))
+    return seen
+
+
+def _generator_modules_of_benchmark(graph: dict[str, set[str]]) -> set[str]:
+    """The stillbox_gen modules that benchmark modules import, directly or not."""
+    starts = {n for n in graph if n.split(".")[0] == "benchmark"}
+    return {n for n in reachable(graph, starts) if n.split(".")[0] == "stillbox_gen"}
+
+
+def test_reachable_follows_chains():
+    graph = {"benchmark.a": {"stillbox_gen.x"}, "stillbox_gen.x": {"stillbox_gen.y"}}
+    assert _generator_modules_of_benchmark(graph) == {"stillbox_gen.x", "stillbox_gen.y"}
+
+
+def test_the_contract_lists_are_disjoint():
+    assert not any(m.startswith(BENCHMARK_MUST_NOT_LOAD) for m in BENCHMARK_MAY_LOAD)
+
+
+def test_benchmark_imports_only_the_data_contract():
+    """Read from the source: every stillbox_gen module a benchmark module imports, directly or
+    through other modules, is one of the contract's (never the writer, config or Blender)."""
+    loaded = _generator_modules_of_benchmark(import_graph())
+    assert "stillbox_gen.dataset" in loaded  # the walk sees the reader
+    assert loaded <= BENCHMARK_MAY_LOAD, sorted(loaded - BENCHMARK_MAY_LOAD)
+    assert not any(m.startswith(BENCHMARK_MUST_NOT_LOAD) for m in loaded)
+
+
+def test_importing_the_benchmark_loads_only_the_data_contract():
+    """The same at run time: importing every benchmark module loads no other stillbox_gen
+    module, and neither bpy."""
+    names = [n for n in _modules() if n.split(".")[0] == "benchmark"]
+    code = (
+        f"import importlib, sys\nfor n in {names!r}:\n    importlib.import_module(n)\n"
+        "print(sorted(m for m in sys.modules if m.split('.')[0] in ('stillbox_gen', 'bpy')))"
+    )
+    proc = subprocess.run(
+        [sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=300
+    )
+    assert proc.returncode == 0, proc.stderr
+    loaded = set(ast.literal_eval(proc.stdout))
+    assert "stillbox_gen.dataset" in loaded
+    assert loaded <= BENCHMARK_MAY_LOAD, sorted(loaded - BENCHMARK_MAY_LOAD)

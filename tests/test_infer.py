@@ -21,11 +21,11 @@ from conftest import invoke_main
 
 from benchmark import cli, registry
 from benchmark.checkpoint import depth_network
+from benchmark.multishift import displacements
 from benchmark.video import (
     Crop,
     constant_speed_positions,
     crop_box,
-    displacements,
     focal_px,
     read_poses,
 )
@@ -167,7 +167,7 @@ def test_video_end_to_end(files, tmp_path):
     # the first pair aims at d0 = 0.3 m: 3 m/s at 10 frames/s is 0.3 m per frame -> shift 1
     assert rows[1]["shifts"] == "1" and float(rows[1]["d_opt_m"]) == pytest.approx(0.3)
     assert float(rows[1]["mean_depth_m"]) == pytest.approx(d[0].mean(), rel=1e-4)
-    assert not list(out.parent.glob(".out.partial-*"))
+    assert not list(out.parent.glob(".out.tmp-*"))
 
 
 def test_depth_is_proportional_to_speed(files, tmp_path):
@@ -282,7 +282,7 @@ def test_errors_are_one_line_before_writing(files, tmp_path, args, flag):
     if "bad_csv" in str(args):
         assert "row 4, column 'y'" in lines[0]
     assert not out.exists()
-    assert not list(tmp_path.glob(".out.partial-*"))
+    assert not list(tmp_path.glob(".out.tmp-*"))
 
 
 def test_garbled_video_gives_both_frame_counts(files, tmp_path):
@@ -294,7 +294,7 @@ def test_garbled_video_gives_both_frame_counts(files, tmp_path):
     assert proc.returncode == 2, proc.stderr
     assert f"decodes {GARBLED_AT} of the {FRAMES} frames" in proc.stderr
     assert f"(frame {GARBLED_AT} fails)" in proc.stderr
-    assert not out.exists() and not list(tmp_path.glob(".out.partial-*"))
+    assert not out.exists() and not list(tmp_path.glob(".out.tmp-*"))
 
 
 def test_out_must_be_new_or_empty(files, tmp_path):

@@ -273,7 +273,7 @@ def test_dataset_reader_refuses_frames_outside_the_dataset(ds, tmp_path):
     """stillbox_gen.dataset.Dataset, the reader behind every command: DatasetError naming the
     record when any scene asked for has a name leading outside; the other scenes still load."""
     from stillbox_gen.dataset import Dataset
-    from stillbox_gen.formats import DatasetError
+    from stillbox_gen.errors import DatasetError
 
     k, _ = _loader_attack(ds, tmp_path, "dotdot")
     reader = Dataset(ds)
@@ -352,7 +352,7 @@ def test_dataset_files_that_are_symlinks_outside_are_refused(ds, tmp_path, name)
     """dataset.json or manifest.parquet as a symlink to a FIFO outside: validate names it (exit
     1), preview, stats and the reader refuse it in one line; the FIFO is never opened."""
     from stillbox_gen.dataset import Dataset
-    from stillbox_gen.formats import DatasetError
+    from stillbox_gen.errors import DatasetError
 
     fifo = _outside_fifo(tmp_path)
     (ds / name).unlink()

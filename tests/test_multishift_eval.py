@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 from test_bench import bench
 
-from benchmark.multishift_eval import BANDS, band_key, displacements, strategies
+from benchmark.multishift import displacements
+from benchmark.multishift_eval import BANDS, band_key, strategies
 from stillbox_gen.dataset import Dataset
 
 
@@ -24,9 +25,9 @@ def trained(tiny_dataset, tmp_path_factory):
 
 def test_displacements_are_the_camera_path(tiny_dataset):
     scene = Dataset(tiny_dataset).scenes("test")[0]
-    d = displacements(scene, 7, 5)
+    d = displacements(scene.cam2world[:, :3, 3], 7, 5)
     np.testing.assert_allclose(d, 0.1 * np.arange(1, 6), rtol=1e-9)  # 0.1 m per frame
-    assert len(displacements(scene, 2, 5)) == 2  # only the frames before t
+    assert len(displacements(scene.cam2world[:, :3, 3], 2, 5)) == 2  # only the frames before t
 
 
 def test_strategies():

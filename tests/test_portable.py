@@ -24,7 +24,7 @@ from stillbox_gen import camera, portable, shapes
 SCRIPT = """
 import hashlib, json, math, sys
 import numpy as np
-from stillbox_gen import config, formats, layout, shapes, writer
+from stillbox_gen import config, formats, record, shapes, writer
 from stillbox_gen.scene import sample_scene
 
 def canary():
@@ -45,7 +45,7 @@ for cfg in (config.load_preset("stillbox"), config.load_preset("stillbox-unstabi
     records.append(writer.chunk_args(cfg.to_dict(), "stillbox-gen"))  # metadata.json's args
     for k in range(int(sys.argv[1])):
         spec = sample_scene(cfg, k).to_dict()
-        records.append([spec, layout.scene_record(spec, "png", False)])
+        records.append([spec, record.scene_record(spec, "png", False)])
 meshes = [shapes.mesh(kind, [2.0, 1.7, 1.3])[0].tobytes().hex() for kind in config.PRIMITIVE_KINDS]
 digest = hashlib.sha256((formats.canonical_json(records) + "".join(meshes)).encode())
 print(json.dumps({"records": digest.hexdigest()[:16], "canary": canary()}))

@@ -4,12 +4,10 @@ from __future__ import annotations
 
 import contextlib
 import json
-import multiprocessing
 import os
 import signal
 import subprocess
 import time
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import cv2
@@ -17,19 +15,17 @@ import numpy as np
 import pytest
 from conftest import CLI, assert_user_error, file_tree, invoke_cli, run_cli
 
-from stillbox_gen import camera, config, formats, generate, layout, scene
+from stillbox_gen import camera, config, formats, layout, record, scene, workers
 from stillbox_gen.manifest import read_manifest
+from stillbox_gen.worker_setup import worker_setup
 
 pytestmark = pytest.mark.render
 
 
-def render_spec(spec: scene.SceneSpec, cfg: config.DatasetConfig, out: Path) -> None:
+def render_spec(spec: record.SceneSpec, cfg: config.DatasetConfig, out: Path) -> None:
     """Render one SceneSpec in a worker process, exactly as the generator does."""
-    c = cfg.camera
-    init = (cfg.to_dict()["render"], c.width, c.height, 0, None)
-    ctx = multiprocessing.get_context("spawn")
-    with ProcessPoolExecutor(1, ctx, initializer=generate._worker_init, initargs=init) as pool:
-        pool.submit(generate._worker_render, spec.to_dict(), str(out), "png", False).result()
+    with workers.process_pool(1, worker_setup(cfg, threads=0)) as pool:
+        pool.submit(workers.render_scene, spec.to_dict(), str(out), "png", False).result()
 
 
 def wall_scene(width: int, height: int, K: np.ndarray, wall_z: float, step: float, frames: int):
@@ -66,6 +62,25 @@ def test_wall_facing_camera_has_constant_depth_equal_to_its_distance(tmp_path):
         np.testing.assert_allclose(depth, 12.0 - 0.5 * f, rtol=1e-5)
 
 
+def test_one_worker_renders_each_scene_at_its_own_camera_size(tmp_path):
+    """The frame size comes from each scene's CameraSpec alone (the worker set-up holds none):
+    one worker renders a 64x48 then a 40x30 scene, each at its size with its K's geometry."""
+    sizes = {"a": (64, 48), "b": (40, 30)}
+    specs = {}
+    for name, (w, h) in sizes.items():
+        K = camera.intrinsics_matrix(w * 0.6, w / 2 - 0.5, h / 2 - 0.5)
+        cfg, specs[name] = wall_scene(w, h, K, wall_z=9.0, step=0.5, frames=2)
+    with workers.process_pool(1, worker_setup(cfg, threads=0)) as pool:
+        for name, spec in specs.items():
+            out = str(tmp_path / name)
+            pool.submit(workers.render_scene, spec.to_dict(), out, "png", False).result()
+    for name, (w, h) in sizes.items():
+        depth = formats.read_depth_exr(tmp_path / name / layout.depth_name(0, 1))
+        assert depth.shape == (h, w)
+        np.testing.assert_allclose(depth, 9.0 - 0.5, rtol=1e-5)
+        assert formats.read_rgb(tmp_path / name / layout.rgb_name(0, 0)).shape == (h, w, 3)
+
+
 def test_rendered_sphere_matches_pinhole_projection_of_K(tmp_path):
     """A sphere at a known place renders where K projects it, with ray-traced planar depth."""
     K = camera.intrinsics_matrix(45.0, 40.0, 18.0)
@@ -73,7 +88,7 @@ def test_rendered_sphere_matches_pinhole_projection_of_K(tmp_path):
     centre, radius = np.array([0.8, -0.4, 4.0]), 0.8
     material = spec.box.material
     spec.primitives = [
-        scene.PrimitiveSpec("sphere", [2 * radius] * 3, centre.tolist(), [1, 0, 0, 0], material)
+        record.PrimitiveSpec("sphere", [2 * radius] * 3, centre.tolist(), [1, 0, 0, 0], material)
     ]
     render_spec(spec, cfg, tmp_path)
     depth = formats.read_depth_exr(tmp_path / layout.depth_name(0, 0))
@@ -402,9 +417,9 @@ def test_default_scenes_have_stillbox_like_depth(default_dataset):
     defaults these shares range 0.31-0.68 and 0.41-0.71; the literal Table 3.2 reading (sizes
     0-2 m) gave 0.03 and 0.21 with 79 % wall pixels.
     """
-    from stillbox_gen import stats
+    from stillbox_gen.stats.measure import dataset_stats
 
-    s = stats.dataset_stats(default_dataset, scenes=4)
+    s = dataset_stats(default_dataset, scenes=4)
     assert s["depth"]["share_5_25m"] > 0.25
     assert s["depth"]["share_below_25m"] > 0.35
     assert 0.15 < s["walls_objects"]["wall_share"] < 0.75

@@ -11,8 +11,9 @@ import numpy as np
 import pytest
 
 from stillbox_gen import camera, config, shapes
-from stillbox_gen.config import ConfigError
-from stillbox_gen.scene import SceneSpec, path_hits, sample_scene
+from stillbox_gen.errors import ConfigError
+from stillbox_gen.record import SceneSpec
+from stillbox_gen.scene import path_hits, sample_scene
 
 N_SCENES = 500
 

@@ -15,7 +15,7 @@ import pytest
 from conftest import assert_user_error, invoke_cli, run_cli
 
 from stillbox_gen import cli, config, dataset, photos, scene, shapes
-from stillbox_gen.config import ConfigError
+from stillbox_gen.errors import ConfigError
 
 PRESETS = {"flower": "toy-flower", "horizon": "toy-horizon"}
 MISS = 1e10  # depth of a pixel whose ray meets nothing within max_distance (docs/FORMAT.md)

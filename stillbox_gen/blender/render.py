@@ -21,55 +21,49 @@ import cv2
 import numpy as np
 
 from .. import config, formats, layout
+from ..worker_setup import WorkerSetup
 from . import build, devices
 
 _STATE: dict = {}
 
 
-def init_worker(
-    render: dict,
-    width: int,
-    height: int,
-    threads: int,
-    textures_dir: str | None,
-    device: str = config.CPU_DEVICE,
-    silence_stdout: bool = True,
-) -> None:
-    """Configure Cycles once per process. ``render`` is RenderConfig as a dict; ``device`` is
-    CPU_DEVICE or one of config.GPU_BACKENDS (RuntimeError when Cycles finds no such device)."""
+def init_worker(setup: WorkerSetup, silence_stdout: bool = True) -> None:
+    """Configure Cycles once per process; ``setup.device`` is CPU_DEVICE or one of
+    config.GPU_BACKENDS (RuntimeError when Cycles finds no such device). The frame size is set
+    per scene, from its CameraSpec (:func:`_set_frame_size`)."""
+    render = setup.render
     if silence_stdout:  # Blender prints a line per saved file on stdout
         os.dup2(os.open(os.devnull, os.O_WRONLY), 1)
     bpy.ops.wm.read_factory_settings(use_empty=True)
     scene = bpy.context.scene
     scene.render.engine = "CYCLES"
     cy = scene.cycles
-    devices.use_device(device)
-    cy.samples = render["samples"]
+    devices.use_device(setup.device)
+    cy.samples = render.samples
     cy.use_adaptive_sampling = False
     # Box filter one pixel wide: a pixel is the mean of its samples over its own area (no blur
     # across neighbours), i.e. anti-aliasing by area integration.
     cy.pixel_filter_type = "BOX"
     cy.filter_width = 1.0
-    cy.use_denoising = render["denoise"]
+    cy.use_denoising = render.denoise
     cy.denoiser = "OPENIMAGEDENOISE"
     cy.denoising_prefilter = "FAST"
-    cy.denoising_quality = config.denoise_quality(render["denoise_quality"], width, height).upper()
-    direct = render["shading"] == "direct"
-    cy.max_bounces = render["max_bounces"]
-    cy.diffuse_bounces = 0 if direct else min(1, render["max_bounces"])
-    cy.glossy_bounces = render["max_bounces"]
+    direct = render.shading == "direct"
+    cy.max_bounces = render.max_bounces
+    cy.diffuse_bounces = 0 if direct else min(1, render.max_bounces)
+    cy.glossy_bounces = render.max_bounces
     cy.transmission_bounces = 0
     cy.volume_bounces = 0
     cy.transparent_max_bounces = 0
     cy.caustics_reflective = False
     cy.caustics_refractive = False
     r = scene.render
-    r.resolution_x, r.resolution_y, r.resolution_percentage = width, height, 100
-    r.use_persistent_data = render["persistent"]
+    r.resolution_percentage = 100
+    r.use_persistent_data = render.persistent
     r.use_motion_blur = False
-    if threads > 0:
+    if setup.threads > 0:
         r.threads_mode = "FIXED"
-        r.threads = threads
+        r.threads = setup.threads
     scene.view_settings.view_transform = "Standard"
     scene.view_settings.look = "None"
     scene.view_settings.exposure = 0.0
@@ -82,7 +76,7 @@ def init_worker(
     img.file_format = "OPEN_EXR_MULTILAYER"
     img.color_depth = "16"  # the Z pass stays float32 in half-float EXRs
     img.exr_codec = "NONE"  # temporary files, read back at once: compressing them is wasted time
-    _STATE.update(textures_dir=textures_dir, shading=render["shading"], scenes=0, job=None)
+    _STATE.update(setup=setup, scenes=0, job=None)
     handlers = bpy.app.handlers.frame_change_pre
     if _pose_frame not in handlers:
         handlers.append(_pose_frame)
@@ -97,10 +91,21 @@ def _pose_frame(scene, depsgraph=None) -> None:
     if job is None or not 0 <= f < len(job["poses"]):
         return
     build.set_camera_pose(job["camera"], job["poses"][f])
-    seed = render_seed(job["seed"], f, _STATE["shading"])
+    seed = render_seed(job["seed"], f, _STATE["setup"].render.shading)
     if scene.cycles.seed != seed:
         scene.cycles.seed = seed
         scene.update_tag()  # an animation render re-reads the seed only from a tagged scene
+
+
+def _set_frame_size(scene, width: int, height: int) -> None:
+    """Frame size in pixels, and the denoiser mode that follows from it, of the scene about to
+    be rendered: from its CameraSpec, the one source of the resolution (its K was drawn for it)."""
+    r = scene.render
+    if (r.resolution_x, r.resolution_y) != (width, height):
+        r.resolution_x, r.resolution_y = width, height
+    quality = config.denoise_quality(_STATE["setup"].render.denoise_quality, width, height)
+    if scene.cycles.denoising_quality != quality.upper():
+        scene.cycles.denoising_quality = quality.upper()
 
 
 def render_seed(scene_seed: int, frame: int, shading: str) -> int:
@@ -151,8 +156,10 @@ def render_scene(spec: dict, out_dir: str, image_format: str, legacy: bool) -> d
     if scene.render.use_persistent_data:  # free the previous scene's cached render data, which
         scene.render.use_persistent_data = False  # otherwise grows RSS ~0.27 MB per scene
         scene.render.use_persistent_data = True
+    _set_frame_size(scene, spec["camera"]["width"], spec["camera"]["height"])
     build.clear_scene()
-    cam = build.build_scene(spec, _STATE["textures_dir"], _STATE["shading"])
+    setup = _STATE["setup"]
+    cam = build.build_scene(spec, setup.textures_dir, setup.render.shading)
     t_build = time.perf_counter() - t0
     local = layout.local_index(spec["index"])
     # full-resolution chroma (4:4:4): 4:2:0 JPEGs differ from the PNGs by about 6/255 on average
