@@ -17,8 +17,9 @@ import numpy as np
 import pytest
 from conftest import CliResult, invoke_main
 
-from benchmark import cli, runfolder
-from benchmark.data import FrameStore, PairDataset, load_scenes
+from benchmark import cli
+from benchmark.core import runfolder
+from benchmark.core.data import FrameStore, PairDataset, load_scenes
 
 BENCH = [sys.executable, "-m", "benchmark.cli"]
 
@@ -98,7 +99,7 @@ def test_eval_pairs_are_fixed_forward_pairs(tiny_dataset):
 def test_bad_file_is_named(tiny_dataset, tmp_path):
     import shutil
 
-    from benchmark.data import DataError
+    from benchmark.core.data import DataError
 
     broken = tmp_path / "broken"
     shutil.copytree(tiny_dataset, broken)
@@ -231,7 +232,8 @@ def test_run_depthnet_typed_alone_reads_the_default_dataset(tmp_path, monkeypatc
     starts on it with the registry's recipe (the training itself is replaced by a stub)."""
     from click.testing import CliRunner
 
-    from benchmark import cli, runner
+    from benchmark import cli
+    from benchmark.supervised import runner
 
     monkeypatch.chdir(tmp_path)
     result = CliRunner().invoke(cli.cli, ["run", "depthnet"])
@@ -274,7 +276,7 @@ def test_flow_targets_follow_depth_translation_and_flips(store):
     """Training flow targets = exact flow of frame i2 towards frame i1, flipped consistently."""
     import torch
 
-    from benchmark.flow import flow_from_depth
+    from benchmark.core.flow import flow_from_depth
 
     ds = PairDataset(store, "train", shift=3, seed=0, target="flow")
     seen = set()
@@ -359,8 +361,8 @@ def test_oracle_flow_returns_ground_truth_and_constant_is_the_median(tiny_datase
 @pytest.mark.parametrize("model", ["oracle-flow", "constant"])
 def test_every_file_of_a_scored_run_is_written_once(tiny_dataset, tmp_path, monkeypatch, model):
     """One writer of the run folder: each report file is written once, atomically, by
-    benchmark.runfolder (summary.json used to be written again to add entries)."""
-    from benchmark import runner
+    benchmark.core.runfolder (summary.json used to be written again to add entries)."""
+    from benchmark.supervised import runner
 
     written = []
 

@@ -9,9 +9,10 @@ import pytest
 import torch
 from test_bench import bench
 
-from benchmark import evaluate, registry
-from benchmark.data import STILL_TARGET, FrameStore, PairDataset, load_scenes
-from benchmark.models import DepthNet, count_parameters
+from benchmark.core import registry
+from benchmark.core.data import STILL_TARGET, FrameStore, PairDataset, load_scenes
+from benchmark.core.models import DepthNet, count_parameters
+from benchmark.supervised import evaluate
 from stillbox_gen.conventions import MAX_DEPTH, NOMINAL_SHIFT
 
 

@@ -123,14 +123,48 @@ def test_the_graph_sees_the_known_edges():
     assert "stillbox_gen.writer" in graph["stillbox_gen.generate"]
     assert "stillbox_gen.workers" in graph["stillbox_gen.ray_pool"]
     assert "stillbox_gen.blender.render" in graph["stillbox_gen.workers"]  # in a function
-    assert "stillbox_gen.dataset" in graph["benchmark.data"]
-    assert "benchmark.models" in graph["benchmark.cli"]
+    assert "stillbox_gen.dataset" in graph["benchmark.core.data"]
+    assert "benchmark.core.models" in graph["benchmark.cli.supervised"]
+    assert "benchmark.cli.supervised" in graph["benchmark.cli"]
 
 
 def test_no_import_cycles():
     """Every module can be read, and imported, without the ones that import it."""
     cycle = find_cycle(import_graph())
     assert cycle is None, "import cycle: " + " -> ".join(cycle or [])
+
+
+#: benchmark's groups of modules (README code map): each may import benchmark.core, never the
+#: other way round
+BENCHMARK_GROUPS = ("supervised", "unsupervised", "video", "cli")
+
+
+def test_benchmark_core_imports_none_of_the_other_groups():
+    """benchmark.core is what every chapter uses: it imports no chapter's group nor the CLI."""
+    graph = import_graph()
+    core = [m for m in graph if m == "benchmark.core" or m.startswith("benchmark.core.")]
+    assert "benchmark.core.data" in core
+    others = tuple(f"benchmark.{group}" for group in BENCHMARK_GROUPS)
+    offenders = [
+        f"{m} imports {i}"
+        for m in core
+        for i in sorted(graph[m])
+        if i in others or i.startswith(tuple(f"{o}." for o in others))
+    ]
+    assert not offenders, offenders
+
+
+def test_only_the_cli_imports_the_cli():
+    """The command line sits on top: no library module imports benchmark.cli."""
+    graph = import_graph()
+    offenders = [
+        f"{m} imports {i}"
+        for m in graph
+        if not m.startswith("benchmark.cli")
+        for i in graph[m]
+        if i.startswith("benchmark.cli")
+    ]
+    assert not offenders, offenders
 
 
 def test_only_the_blender_package_imports_bpy():
@@ -156,3 +190,19 @@ def test_importing_every_other_module_loads_no_bpy():
     )
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.strip() == "[]"
+
+
+def test_every_package_is_installed():
+    """pyproject.toml's [tool.setuptools] packages name every folder of modules (a sub-package
+    left out would be missing from an installed stillbox-bench)."""
+    import tomllib
+
+    listed = set(
+        tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"]
+    )
+    found = {
+        ".".join(init.parent.relative_to(ROOT).parts)
+        for package in PACKAGES
+        for init in (ROOT / package).rglob("__init__.py")
+    }
+    assert found <= listed, sorted(found - listed)

@@ -19,9 +19,9 @@ import pytest
 import torch
 from conftest import invoke_main
 
-from benchmark import cli, registry
-from benchmark.checkpoint import depth_network
-from benchmark.video import (
+from benchmark import cli
+from benchmark.core import registry
+from benchmark.video.footage import (
     Crop,
     constant_speed_positions,
     crop_box,
@@ -29,6 +29,7 @@ from benchmark.video import (
     focal_px,
     read_poses,
 )
+from benchmark.video.network import depth_network
 
 FRAMES, SIZE, FPS = 8, 64, 10.0
 
@@ -379,9 +380,9 @@ def test_rendered_scene_as_mp4_and_as_frames(tiny_dataset, files, tmp_path):
     """A generated scene written to an MP4 (cv2.VideoWriter) runs end to end; its lossless frames
     with --fixed-shift 3 at 0.1 m per frame give the depth `eval` computes for the pairs
     (t − 3, t) (the same network, scale and upsampling)."""
-    from benchmark.data import load_scenes
-    from benchmark.evaluate import Method, predict
-    from benchmark.runner import eval_split
+    from benchmark.core.data import load_scenes
+    from benchmark.supervised.evaluate import Method, predict
+    from benchmark.supervised.runner import eval_split
 
     scene = load_scenes(tiny_dataset, "test")[0]
     frames = [scene.load_rgb(f) for f in range(scene.frames)]

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from test_bench import bench
 
-from benchmark.multishift_eval import BANDS, band_key, displacements, strategies
+from benchmark.video.multishift_eval import BANDS, band_key, displacements, strategies
 from stillbox_gen.dataset import Dataset
 
 

@@ -14,9 +14,10 @@ from conftest import invoke_main
 from test_bench import bench
 from torch.utils.data import DataLoader, default_collate
 
-from benchmark import cli, registry
-from benchmark.config import TrainConfig
-from benchmark.data import (
+from benchmark import cli
+from benchmark.core import registry
+from benchmark.core.config import TrainConfig
+from benchmark.core.data import (
     EpochBatches,
     EpochSampler,
     FrameStore,
@@ -24,7 +25,7 @@ from benchmark.data import (
     PairDataset,
     load_scenes,
 )
-from benchmark.train import TrainStep, make_optimizer
+from benchmark.supervised.train import TrainStep, make_optimizer
 
 
 @pytest.fixture(scope="module")

@@ -4,8 +4,8 @@ Networks (``depth`` and ``flow`` outputs) are trained by train.Trainer, then the
 checkpoint is scored; methods without a network (``oracle-flow``, ``constant``) are scored
 directly. Either way the run folder gets ``config.json``, ``environment.json``,
 ``summary.json`` / ``summary.md``, ``per_sample.csv``, ``pixels.npz`` and ``plots/``, each written
-once, through benchmark.runfolder (docs/RUNS.md). Errors a user can fix are raised as ValueError
-with a one-line message.
+once, through benchmark.core.runfolder (docs/RUNS.md). Errors a user can fix are raised as
+ValueError with a one-line message.
 """
 
 from __future__ import annotations
@@ -20,12 +20,14 @@ import numpy as np
 from stillbox_gen.conventions import MAX_DEPTH, NOMINAL_SHIFT
 from stillbox_gen.lock import folder_lock
 
-from . import registry, report, runfolder
-from .checkpoint import load_checkpoint, load_weights
-from .config import EVAL_BATCH_SIZE, TrainConfig, default
-from .data import FrameStore, PairDataset, Scene, load_scenes, read_depth
+from ..core import registry, runfolder
+from ..core.checkpoint import load_checkpoint, load_weights
+from ..core.config import EVAL_BATCH_SIZE, TrainConfig, default
+from ..core.data import FrameStore, PairDataset, Scene, load_scenes, read_depth
+from ..core.device import resolve_device
+from . import report
 from .evaluate import EvalResult, Method, evaluate
-from .train import Trainer, environment, resolve_device, resumed_settings
+from .train import Trainer, environment, resumed_settings
 
 MEDIAN_FRAMES = 2000  # at most this many training frames (evenly spread) for the constant
 ORACLE_FLOW_NOISE_PX = 0.05  # oracle-flow is also scored with this much flow noise (sensitivity)

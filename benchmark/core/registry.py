@@ -1,11 +1,12 @@
 """Registered methods: a name → what it predicts, how to build its network, how to train it.
 
 Methods (``MODELS``): DepthNet (depth directly), FlowNetS with a depth head, FlowNetS for optical
-flow followed by depth from flow and the known translation (benchmark.flow), the same geometry fed
-with ground-truth flow (``oracle-flow``) and a constant depth (``constant``); the last two have no
-network. ``-tiny`` variants (1/8 width) exist for tests and smoke runs. Each network's training
-hyper-parameters are a :class:`Recipe`; ``benchmark.config.TrainConfig`` takes its defaults from
-:data:`DEPTH_RECIPE`, and a run of a method starts from that method's recipe.
+flow followed by depth from flow and the known translation (benchmark.core.flow), the same
+geometry fed with ground-truth flow (``oracle-flow``) and a constant depth (``constant``); the last
+two have no network. ``-tiny`` variants (1/8 width) exist for tests and smoke runs. Each
+network's training hyper-parameters are a :class:`Recipe`; ``benchmark.core.config.TrainConfig``
+takes its defaults from :data:`DEPTH_RECIPE`, and a run of a method starts from that method's
+recipe.
 """
 
 from __future__ import annotations

@@ -7,7 +7,7 @@ flow / 20), and keep the checkpoint with the best validation EPE instead of the 
 
 A training writes ``config.json``, ``environment.json``, ``steps.csv`` (loss every
 ``log_every`` steps), ``metrics.csv`` (one row per validation), ``tb/`` (TensorBoard) and
-``checkpoints/{last,best}.pt`` into its run folder through benchmark.runfolder (docs/RUNS.md);
+``checkpoints/{last,best}.pt`` into its run folder through benchmark.core.runfolder (docs/RUNS.md);
 checkpoints are read back with ``weights_only=True``, so a checkpoint can never run code.
 Multi-process training works unchanged under ``torchrun`` (DDP; gloo on CPU, NCCL on GPUs): the
 main process (rank 0) logs, validates and saves.
@@ -18,7 +18,6 @@ from __future__ import annotations
 import math
 import os
 import platform
-import re
 import signal
 import time
 from collections.abc import Callable
@@ -32,10 +31,10 @@ from tqdm import tqdm
 
 from stillbox_gen.conventions import MAX_DEPTH
 
-from . import evaluate, registry, runfolder
-from .checkpoint import first_line, load_checkpoint, load_weights
-from .config import TrainConfig
-from .data import (
+from ..core import registry, runfolder
+from ..core.checkpoint import first_line, load_checkpoint, load_weights
+from ..core.config import TrainConfig
+from ..core.data import (
     EpochBatches,
     EpochSampler,
     FrameStore,
@@ -44,18 +43,8 @@ from .data import (
     camera_of,
     load_scenes,
 )
-
-
-def resolve_device(name: str) -> torch.device:
-    """``auto`` (CUDA when available), ``cpu``, ``cuda`` or ``cuda:N``; ValueError naming
-    --device otherwise."""
-    if not re.fullmatch(r"auto|cpu|cuda(:\d+)?", name):
-        raise ValueError(f"--device: unknown device '{name}' (auto, cpu, cuda or cuda:N)")
-    if name == "auto":
-        name = "cuda" if torch.cuda.is_available() else "cpu"
-    if name.startswith("cuda") and not torch.cuda.is_available():
-        raise ValueError(f"--device {name}: no CUDA device is available")
-    return torch.device(name)
+from ..core.device import resolve_device
+from . import evaluate
 
 
 def environment(device: torch.device) -> dict:

@@ -1,27 +1,18 @@
-"""``stillbox-bench``: train, score and compare depth-from-motion models on stillbox-gen data.
-
-User mistakes print one line ``stillbox-bench: error: ...`` and exit with code 2.
-"""
+"""``stillbox-bench`` commands of thesis chapter 3: list, run, eval, report, compare, speed."""
 
 from __future__ import annotations
 
 import math
-import sys
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import click
 
-from stillbox_gen.conventions import MAX_DEPTH, default_root
-
-from . import registry
-from . import speed as speed_table
-from .config import EVAL_BATCH_SIZE, MAX_SEED, MULTISHIFT_MAX_SHIFT, default
-from .models import count_parameters
-from .multishift import BETA_MAX, BETA_MEAN, BETA_MIN, EMA_LAMBDA
-from .registry import CLAMPED_RECIPE, DEPTH_RECIPE
-from .runfolder import (
+from ..core import registry
+from ..core.config import EVAL_BATCH_SIZE, MAX_SEED, default
+from ..core.models import count_parameters
+from ..core.registry import CLAMPED_RECIPE, DEPTH_RECIPE
+from ..core.runfolder import (
     COMPARISON,
     SUMMARY_JSON,
     SUMMARY_MD,
@@ -29,32 +20,18 @@ from .runfolder import (
     comparison_paths,
     has_summary,
 )
-
-if TYPE_CHECKING:
-    import torch
-
-
-class UserError(click.ClickException):
-    exit_code = 2
-
-
-#: the default --data: stillbox-gen's default output at 64 px, and the command that makes it
-#: (the 3,000 scenes of the README's results)
-DEFAULT_DATA = default_root(64, 64)
-MAKE_DEFAULT_DATA = "stillbox-gen --res 64 --scenes 3000"
-
-
-def _dataset_dir(data: Path) -> Path:
-    """``data`` when it holds a finished dataset; else a UserError naming --data (and, when the
-    folder is missing, the stillbox-gen command that makes it)."""
-    if not data.exists():
-        make = MAKE_DEFAULT_DATA if data == DEFAULT_DATA else f"{MAKE_DEFAULT_DATA} --out {data}"
-        raise UserError(f"--data: no dataset at '{data}'; make one with '{make}'")
-    if not (data / "manifest.parquet").is_file():
-        raise UserError(
-            f"--data: '{data}' is not a finished stillbox-gen dataset (no manifest.parquet)"
-        )
-    return data
+from ..supervised import speed as speed_table
+from .options import (
+    DATA_OPTION,
+    DEVICE_OPTION,
+    PREDICTIONS_OPTION,
+    UserError,
+    dataset_dir,
+    int_option,
+    is_default,
+    model_names,
+    torch_device,
+)
 
 
 def _clamp_option(text: str | None) -> tuple[float, float] | None:
@@ -67,16 +44,6 @@ def _clamp_option(text: str | None) -> tuple[float, float] | None:
     except ValueError:
         raise UserError(f"--clamp: expected LO,HI in metres (e.g. 10,60), got '{text}'") from None
     return (lo, hi)
-
-
-def _device(name: str) -> torch.device:
-    """--device resolved to a torch.device (UserError naming --device when unusable)."""
-    from .train import resolve_device
-
-    try:
-        return resolve_device(name)
-    except ValueError as e:
-        raise UserError(str(e)) from None
 
 
 def _training_options(o: dict) -> None:
@@ -94,73 +61,10 @@ def _training_options(o: dict) -> None:
         raise UserError(f"--threads: must be 0 (torch default) or more, got {o['threads']}")
     if o["seed"] is not None and not 0 <= o["seed"] <= MAX_SEED:
         raise UserError(f"--seed: must be an integer from 0 to {MAX_SEED}, got {o['seed']}")
-    _device(o["device"])
+    torch_device(o["device"])
 
 
-def _is_default(name: str) -> bool:
-    """True when the current command's option ``name`` was not given (its default applies)."""
-    source = click.get_current_context().get_parameter_source(name)
-    return source is click.core.ParameterSource.DEFAULT
-
-
-def _models_option(value: str) -> list[str]:
-    names = [n.strip() for n in value.split(",") if n.strip()]
-    unknown = [n for n in names if n not in registry.MODELS]
-    if not names or unknown:
-        raise UserError(
-            f"--models: unknown {', '.join(map(repr, unknown)) or 'empty list'} "
-            f"(registered: {', '.join(registry.list_models())})"
-        )
-    return names
-
-
-def _int_option(flag: str, value: int, text: str):
-    """An integer option with a default shown in --help."""
-    return click.option(flag, type=int, default=value, show_default=True, help=text)
-
-
-DATA_OPTION = click.option(
-    "--data",
-    type=click.Path(path_type=Path),
-    default=DEFAULT_DATA,
-    show_default=True,
-    help=f"Dataset folder made by stillbox-gen (the default is made by '{MAKE_DEFAULT_DATA}').",
-)
-BETA_MEAN_OPTION = click.option(
-    "--beta-mean",
-    type=float,
-    default=BETA_MEAN,
-    show_default=True,
-    help="The β = output/θ_max the shifts aim at and the fusion favours (thesis 6.2-6.3).",
-)
-DEVICE_OPTION = click.option(
-    "--device", default=default("device"), show_default=True, help="auto | cpu | cuda | cuda:N."
-)
-PREDICTIONS_OPTION = click.option(
-    "--save-predictions",
-    is_flag=True,
-    help="Store predicted depth maps (float32 .npy, full resolution).",
-)
-
-
-@click.group(context_settings={"help_option_names": ["-h", "--help"]})
-def cli() -> None:
-    """Train and score depth-from-motion baselines on stillbox-gen datasets.
-
-    \b
-    stillbox-bench run depthnet --data data/stillbox-64      train -> evaluate -> report
-    stillbox-bench run oracle-flow --data data/stillbox-64   score a method without a network
-    stillbox-bench eval --ckpt runs/R/checkpoints/best.pt --data data/stillbox-64
-    stillbox-bench compare --data D --models depthnet,flownets-flow,oracle-flow,constant
-    stillbox-bench report runs/*                             one comparison table + figure
-    stillbox-bench speed                                     size and speed table
-    stillbox-bench infer --ckpt C --input flight.mp4 --speed 9 --out out/  depth of a video
-    stillbox-bench eval-multishift --ckpt C --data SEQ --out R  shift strategies on sequences
-    stillbox-bench list                                      registered models
-    """
-
-
-@cli.command("list")
+@click.command("list")
 def list_cmd() -> None:
     """Registered models with their parameter counts."""
     width = max(map(len, registry.list_models()))
@@ -173,7 +77,7 @@ def list_cmd() -> None:
         click.echo(f"{name:{width}s} {n}  {spec.description}")
 
 
-@cli.command()
+@click.command()
 @click.argument("model")
 @DATA_OPTION
 @click.option(
@@ -198,8 +102,8 @@ def list_cmd() -> None:
     "--lr", type=float, help=f"Initial SGD learning rate.  [default: model's, {DEPTH_RECIPE.lr:g}]"
 )
 @DEVICE_OPTION
-@_int_option("--threads", default("threads"), "Torch CPU threads (0 = torch default).")
-@_int_option("--seed", default("seed"), "Seed of initialisation and pair sampling.")
+@int_option("--threads", default("threads"), "Torch CPU threads (0 = torch default).")
+@int_option("--seed", default("seed"), "Seed of initialisation and pair sampling.")
 @click.option(
     "--pretrained",
     type=click.Path(path_type=Path),
@@ -211,8 +115,8 @@ def list_cmd() -> None:
     help="Continue the run in --out from checkpoints/last.pt, keeping its logs up to that "
     "checkpoint (an interrupted epoch's train loss is logged as if never interrupted).",
 )
-@_int_option("--ckpt-every", default("ckpt_every"), "Steps between mid-epoch checkpoints.")
-@_int_option("--log-every", default("log_every"), "Steps between steps.csv rows.")
+@int_option("--ckpt-every", default("ckpt_every"), "Steps between mid-epoch checkpoints.")
+@int_option("--log-every", default("log_every"), "Steps between steps.csv rows.")
 @click.option(
     "--shift",
     type=int,
@@ -251,7 +155,7 @@ def run(model: str, data: Path, out: Path | None, **o) -> None:
     if model not in registry.MODELS:
         known = ", ".join(registry.list_models())
         raise UserError(f"MODEL: unknown '{model}' (registered: {known})")
-    data = _dataset_dir(data)
+    data = dataset_dir(data)
     trainable = registry.MODELS[model].trainable
     if o["resume"] and (out is None or not checkpoint_path(out, "last").is_file()):
         raise UserError(
@@ -263,7 +167,7 @@ def run(model: str, data: Path, out: Path | None, **o) -> None:
         raise UserError(f"--out: '{out}' is a file")
     if not o["resume"] and checkpoint_path(out, "last").exists():
         raise UserError(f"--out: '{out}' already holds a run; add --resume or choose another --out")
-    if o["resume"] and _is_default("seed"):
+    if o["resume"] and is_default("seed"):
         o["seed"] = None  # the run's own (runner.train_config)
     _training_options(o)
     o["depth_range"] = _clamp_option(o.pop("clamp"))  # range and --shift: Trainer.setup
@@ -285,7 +189,7 @@ def run(model: str, data: Path, out: Path | None, **o) -> None:
 
 def _run_one(model: str, data: Path, out: Path, o: dict) -> dict | None:
     """runner.run_method with the command-line options; ValueError -> UserError."""
-    from .runner import run_method
+    from ..supervised.runner import run_method
 
     keys = ("epochs", "max_steps", "batch_size", "lr", "shift", "depth_range")
     overrides = {k: o.get(k) for k in keys}
@@ -309,7 +213,7 @@ def _run_one(model: str, data: Path, out: Path, o: dict) -> dict | None:
         raise UserError(str(e)) from None
 
 
-@cli.command("eval")
+@click.command("eval")
 @click.option(
     "--ckpt",
     type=click.Path(path_type=Path),
@@ -329,7 +233,7 @@ def _run_one(model: str, data: Path, out: Path, o: dict) -> dict | None:
     type=click.Path(path_type=Path),
     help="Report folder.  [default: <ckpt folder>/../eval-<dataset>-<split>]",
 )
-@_int_option("--batch-size", EVAL_BATCH_SIZE, "Pairs per forward pass (does not change results).")
+@int_option("--batch-size", EVAL_BATCH_SIZE, "Pairs per forward pass (does not change results).")
 @DEVICE_OPTION
 @PREDICTIONS_OPTION
 def eval_cmd(
@@ -344,14 +248,14 @@ def eval_cmd(
     """Score a checkpoint on a dataset split (writes summary.json/.md, per_sample.csv, plots)."""
     if not ckpt.is_file():
         raise UserError(f"--ckpt: no such file '{ckpt}'")
-    data = _dataset_dir(data)
+    data = dataset_dir(data)
     if batch_size < 1:
         raise UserError(f"--batch-size: must be at least 1, got {batch_size}")
-    _device(device)
+    torch_device(device)
     out = out or ckpt.resolve().parent.parent / f"eval-{data.resolve().name}-{split}"
     if out.exists() and not out.is_dir():
         raise UserError(f"--out: '{out}' is a file")
-    from .runner import score_checkpoint
+    from ..supervised.runner import score_checkpoint
 
     try:  # checks the checkpoint and the data before anything is written to --out
         s = score_checkpoint(ckpt, data, split, out, device, batch_size, save_predictions)
@@ -364,7 +268,7 @@ def eval_cmd(
     )
 
 
-@cli.command()
+@click.command()
 @click.argument("runs", nargs=-1, required=True, type=click.Path(path_type=Path))
 @click.option(
     "--out",
@@ -376,7 +280,7 @@ def eval_cmd(
 def report(runs: tuple[Path, ...], out: Path) -> None:
     """One comparison table (markdown + CSV) of several runs' summary.json, and one figure of
     error vs distance to the focus of expansion with every run on it."""
-    from .report import write_comparison
+    from ..supervised.report import write_comparison
 
     missing = [str(r) for r in runs if not has_summary(r)]
     if missing:
@@ -387,7 +291,7 @@ def report(runs: tuple[Path, ...], out: Path) -> None:
         raise UserError(str(e)) from None
 
 
-@cli.command()
+@click.command()
 @DATA_OPTION
 @click.option(
     "--models",
@@ -407,14 +311,14 @@ def report(runs: tuple[Path, ...], out: Path) -> None:
 @click.option("--batch-size", type=int, help="Samples per optimiser step.  [default: model's]")
 @click.option("--lr", type=float, help="Initial learning rate.  [default: model's]")
 @DEVICE_OPTION
-@_int_option("--threads", default("threads"), "Torch CPU threads.")
-@_int_option("--seed", default("seed"), "Seed of every training.")
+@int_option("--threads", default("threads"), "Torch CPU threads.")
+@int_option("--seed", default("seed"), "Seed of every training.")
 @click.option("--quiet", is_flag=True, help="No progress bars.")
 def compare(data: Path, names: str, out: Path | None, **o) -> None:
     """Run every method of --models on --data (reusing finished runs in --out), then write one
     comparison table and one error-vs-FOE-distance figure with every method."""
-    chosen = _models_option(names)
-    data = _dataset_dir(data)
+    chosen = model_names(names)
+    data = dataset_dir(data)
     _training_options(o)
     if out is None:
         out = Path("runs") / f"compare-{data.resolve().name}-{time.strftime('%Y%m%d-%H%M%S')}"
@@ -434,7 +338,7 @@ def compare(data: Path, names: str, out: Path | None, **o) -> None:
             click.echo(f"{name}: running into {run_dir}")
             _run_one(name, data, run_dir, o)
         runs.append(run_dir)
-    from .report import write_comparison
+    from ..supervised.report import write_comparison
 
     click.echo(write_comparison(runs, out / COMPARISON))
     click.echo(f"comparison in {comparison_paths(out / COMPARISON)['md']}")
@@ -450,7 +354,7 @@ def _int_list(option: str, value: str) -> tuple[int, ...]:
     return values
 
 
-@cli.command()
+@click.command()
 @click.option(
     "--models",
     "names",
@@ -496,23 +400,23 @@ def _int_list(option: str, value: str) -> tuple[int, ...]:
     show_default=True,
     help="Square input sizes (px) for the GMAC columns.",
 )
-@_int_option(
+@int_option(
     "--time-res",
     speed_table.DEFAULT_TIME_SIZE,
     "Square input size (px) of the latency/throughput measurements.",
 )
-@_int_option(
+@int_option(
     "--warmup",
     speed_table.DEFAULT_WARMUP,
     "Untimed passes first (--train: steps; default 24 samples' worth, at least 1).",
 )
-@_int_option(
+@int_option(
     "--repeats",
     speed_table.DEFAULT_REPEATS,
     "Timed passes (median) (--train: steps; default 160 samples' worth, at least 3).",
 )
 @DEVICE_OPTION
-@_int_option("--threads", default("threads"), "Torch CPU threads.")
+@int_option("--threads", default("threads"), "Torch CPU threads.")
 @click.option(
     "--out",
     type=click.Path(path_type=Path),
@@ -543,7 +447,7 @@ def speed(
         return _train_speed(
             names, batches, data, baseline, compile_, time_res, device, threads, out
         )
-    chosen = _models_option(names or ",".join(speed_table.DEFAULT_MODELS))
+    chosen = model_names(names or ",".join(speed_table.DEFAULT_MODELS))
     no_net = [n for n in chosen if not registry.MODELS[n].trainable]
     if no_net:
         raise UserError(f"--models: {', '.join(no_net)} ha(s) no network to time")
@@ -553,7 +457,7 @@ def speed(
         raise UserError("--warmup must be >= 0 and --repeats >= 1")
     if out.exists() and not out.is_dir():
         raise UserError(f"--out: '{out}' is a file")
-    dev = _device(device)
+    dev = torch_device(device)
     if threads > 0:
         torch.set_num_threads(threads)
     rows = speed_table.measure(chosen, dev, sizes, time_res, warmup=warmup, repeats=repeats)
@@ -568,13 +472,13 @@ def speed(
 
 
 def _train_speed(names, batches, data, baseline, compile_, time_res, device, threads, out) -> None:
-    """speed --train: samples/s of training steps (benchmark.train_speed)."""
+    """speed --train: samples/s of training steps (benchmark.supervised.train_speed)."""
     import torch
 
-    from . import train_speed
-    from .data import DataError
+    from ..core.data import DataError
+    from ..supervised import train_speed
 
-    chosen = _models_option(names or ",".join(speed_table.TRAIN_MODELS))
+    chosen = model_names(names or ",".join(speed_table.TRAIN_MODELS))
     no_net = [n for n in chosen if not registry.MODELS[n].trainable]
     if no_net:
         raise UserError(f"--models: {', '.join(no_net)} ha(s) no network to train")
@@ -597,7 +501,7 @@ def _train_speed(names, batches, data, baseline, compile_, time_res, device, thr
         raise UserError(f"--data: '{data}' is not a dataset folder")
     if out.exists() and not out.is_dir():
         raise UserError(f"--out: '{out}' is a file")
-    dev = _device(device)
+    dev = torch_device(device)
     if threads > 0:
         torch.set_num_threads(threads)
     try:
@@ -624,197 +528,3 @@ def _train_speed(names, batches, data, baseline, compile_, time_res, device, thr
     )
     click.echo(train_speed.markdown(rows))
     click.echo(f"written to {path}")
-
-
-def _size_option(value: str | None) -> tuple[int, int] | None:
-    """--res "WxH" or "N" -> (W, H) pixels (UserError naming --res)."""
-    if value is None:
-        return None
-    try:
-        parts = [int(v) for v in value.lower().split("x")]
-    except ValueError:
-        parts = []
-    if len(parts) not in (1, 2):
-        raise UserError(f"--res: expected WxH or N (pixels), got '{value}'")
-    return (parts[0], parts[-1])
-
-
-@cli.command()
-@click.option(
-    "--ckpt",
-    type=click.Path(path_type=Path),
-    required=True,
-    help="Checkpoint of a depth network written by 'run'.",
-)
-@click.option(
-    "--input",
-    "input_",
-    type=click.Path(path_type=Path),
-    required=True,
-    help="Video file, or folder of frames (png/jpg/bmp/tif, in name order).",
-)
-@click.option(
-    "--out",
-    type=click.Path(path_type=Path),
-    required=True,
-    help="Output folder (new or empty): depth/, depth_png/, preview.mp4, frames.csv, summary.json.",
-)
-@click.option("--speed", type=float, help="Constant camera speed, m/s (or --poses).")
-@click.option(
-    "--poses",
-    type=click.Path(path_type=Path),
-    help="CSV, one row per frame: x,y,z (m) or vx,vy,vz (m/s), optional t (s).",
-)
-@click.option("--fps", type=float, help="Frames per second.  [default: the video's]")
-@click.option("--fov", type=float, help="Horizontal field of view of the video, degrees.  "
-              "[default: the training camera's]")  # fmt: skip
-@click.option("--focal", type=float, help="Focal length of the video, pixels (instead of --fov).")
-@click.option("--res", help="Network input WxH, multiples of 64.  [default: the training size]")
-@click.option(
-    "--train-fov",
-    type=float,
-    help="Horizontal FOV (degrees) of the training camera, for checkpoints that record none; "
-    "needs --res.",
-)
-@_int_option("--shifts", 1, "Frame pairs per frame: depth clusters of thesis 6.3 (1..4).")
-@click.option("--fixed-shift", type=int, help="Always this frame shift (no adaptation).")
-@click.option(
-    "--max-shift",
-    type=int,
-    help="Largest frame shift considered.  [default: twice the shift reaching the nominal "
-    "displacement, at least 8]",
-)
-@click.option(
-    "--ema",
-    type=float,
-    default=EMA_LAMBDA,
-    show_default=True,
-    help="Smoothing λ of the target displacement (eq. 6.2), 0 <= λ < 1.",
-)
-@BETA_MEAN_OPTION
-@click.option(
-    "--depth-format",
-    type=click.Choice(["npy", "exr"]),
-    default="npy",
-    show_default=True,
-    help="Depth files: float32 .npy or single-channel .exr, metres.",
-)
-@click.option(
-    "--max-depth",
-    type=float,
-    default=MAX_DEPTH,
-    show_default=True,
-    help="Depth (m) at the end of the colour map of depth_png/ and preview.mp4.",
-)
-@DEVICE_OPTION
-@click.option("--quiet", is_flag=True, help="No progress bar.")
-def infer(input_: Path, res: str | None, **o) -> None:
-    """Depth maps of your own stabilised video with a depth network (thesis chapter 6).
-
-    The depth of frame t comes from pairs (frame t - shift, frame t), shifts chosen from the
-    depth of the previous frames (--shifts N: N pairs fused per frame); frame 0 gets none.
-    """
-    from .infer import InferOptions, describe, prepare
-    from .infer import run as run_inference
-
-    opts = InferOptions(input=input_, res=_size_option(res), **o)
-    try:
-        job = prepare(opts)
-    except ValueError as e:
-        raise UserError(str(e)) from None
-    if job.warning:
-        click.echo(f"stillbox-bench: warning: {job.warning}", err=True)
-    try:
-        summary = run_inference(job, opts)
-    except ValueError as e:
-        raise UserError(str(e)) from None
-    click.echo(describe(summary, opts.out))
-
-
-@cli.command("eval-multishift")
-@click.option(
-    "--ckpt",
-    "ckpts",
-    type=click.Path(path_type=Path),
-    multiple=True,
-    required=True,
-    help="Depth checkpoint written by 'run' (repeat to compare networks).",
-)
-@click.option(
-    "--data",
-    type=click.Path(path_type=Path),
-    required=True,
-    help="Dataset of long sequences, e.g. stillbox-gen --frames 30 --rotation-noise 0.0331.",
-)
-@click.option(
-    "--split",
-    type=click.Choice(["train", "val", "test"]),
-    default="test",
-    show_default=True,
-    help="Split of sequences to score.",
-)
-@click.option("--shifts", default="1,2,3", show_default=True, help="Pairs per frame to score, n.")
-@_int_option("--max-shift", MULTISHIFT_MAX_SHIFT, "Largest frame shift; frames t >= it are scored.")
-@BETA_MEAN_OPTION
-@click.option("--scenes", type=int, help="Score only the split's first N sequences.")
-@click.option("--out", type=click.Path(path_type=Path), required=True, help="Results folder.")
-@DEVICE_OPTION
-@click.option("--quiet", is_flag=True, help="No progress bar.")
-def eval_multishift(
-    ckpts: tuple[Path, ...],
-    data: Path,
-    split: str,
-    shifts: str,
-    max_shift: int,
-    beta_mean: float,
-    scenes: int | None,
-    out: Path,
-    device: str,
-    quiet: bool,
-) -> None:
-    """Score frame-shift strategies on generated sequences (thesis 6.2-6.4, Fig. 6.6): the
-    nominal shift, the optimal shift (n=1) and n-pair fusion, per checkpoint; MAE/MRE/MLE overall
-    and per depth band, and network time per frame."""
-    from .multishift_eval import run as run_multishift
-
-    for ckpt in ckpts:
-        if not ckpt.is_file():
-            raise UserError(f"--ckpt: no such file '{ckpt}'")
-    data = _dataset_dir(data)
-    try:
-        counts = tuple(int(v) for v in shifts.split(","))
-    except ValueError:
-        raise UserError(f"--shifts: expected comma-separated integers, got '{shifts}'") from None
-    if max_shift < 1:
-        raise UserError(f"--max-shift: must be at least 1, got {max_shift}")
-    if not BETA_MIN < beta_mean < BETA_MAX:
-        raise UserError(f"--beta-mean: must be in ({BETA_MIN}, {BETA_MAX}), got {beta_mean}")
-    if scenes is not None and scenes < 1:
-        raise UserError(f"--scenes: must be at least 1, got {scenes}")
-    if out.exists() and not out.is_dir():
-        raise UserError(f"--out: '{out}' is a file")
-    dev = _device(device)
-    try:  # checkpoints and data are checked before anything is written to --out
-        _, md = run_multishift(
-            list(ckpts), data, out, split, counts, max_shift, dev, beta_mean=beta_mean,
-            limit=scenes, progress=not quiet,
-        )  # fmt: skip
-    except ValueError as e:
-        raise UserError(str(e)) from None
-    click.echo(md)
-    click.echo(f"results in {out}")
-
-
-def main(argv: list[str] | None = None) -> None:
-    try:
-        cli.main(args=argv, prog_name="stillbox-bench", standalone_mode=False)
-    except click.ClickException as e:
-        click.echo(f"stillbox-bench: error: {e.format_message()}", err=True)
-        sys.exit(2)
-    except (click.exceptions.Abort, KeyboardInterrupt):
-        click.echo("stillbox-bench: interrupted; continue with --resume --out <run>", err=True)
-        sys.exit(130)
-
-
-if __name__ == "__main__":
-    main()

@@ -1,11 +1,11 @@
 """``stillbox-bench infer``: depth maps of a user's own stabilised video (thesis chapter 6).
 
 For every frame t ≥ 1 the network sees n pairs (I_{t−δ_i}, I_t), one batch, with the frame shifts
-δ_i chosen by :class:`benchmark.multishift.ShiftPlanner` from the depth of the previous frames;
-each output is scaled by its pair's displacement d(t, δ_i) (eq. 6.1) and the n maps are fused
-(eq. 6.3). The depth belongs to frame t (the later frame of each pair); frame 0 has no earlier
+δ_i chosen by :class:`benchmark.video.multishift.ShiftPlanner` from the depth of the previous
+frames; each output is scaled by its pair's displacement d(t, δ_i) (eq. 6.1) and the n maps are
+fused (eq. 6.3). The depth belongs to frame t (the later frame of each pair); frame 0 has no earlier
 frame and gets none. Frames are centre-cropped to the training field of view and resized to the
-network's input size (benchmark.video.crop_box).
+network's input size (benchmark.video.footage.crop_box).
 
 Outputs (``--out``, written in a temporary sibling folder and renamed at the end, so an error
 leaves nothing half written): ``depth/NNNNNN.npy|exr`` (float32 metres, NNNNNN = frame index),
@@ -32,10 +32,9 @@ from tqdm import tqdm
 
 from stillbox_gen.conventions import MAX_DEPTH
 
-from . import video
-from .checkpoint import depth_network
-from .data import normalise
-from .metrics import upsample_to
+from ..core.data import normalise
+from ..core.metrics import upsample_to
+from . import footage
 from .multishift import (
     BETA_MAX,
     BETA_MEAN,
@@ -46,6 +45,7 @@ from .multishift import (
     ShiftPlanner,
     fuse,
 )
+from .network import depth_network
 
 MIN_MAX_SHIFT = 8  # smallest default --max-shift (frames)
 MAX_MAX_SHIFT = 1000  # largest default --max-shift (frames kept in memory)
@@ -86,13 +86,13 @@ class InferOptions:
 class Job:
     """Everything checked and opened, before anything is written."""
 
-    source: video.FrameSource
+    source: footage.FrameSource
     model: torch.nn.Module
     scale: DepthScale
     info: dict
     positions: np.ndarray  # (frames, 3) metres
     fps: float  # frames/s of the preview
-    crop: video.Crop
+    crop: footage.Crop
     size: tuple[int, int]  # network input (width, height), pixels
     max_shift: int
     device: torch.device
@@ -133,14 +133,14 @@ def check_options(o: InferOptions) -> None:
         raise ValueError(f"--out: '{o.out}' exists and is not an empty folder")
 
 
-def _motion(o: InferOptions, source: video.FrameSource) -> tuple[np.ndarray, float]:
+def _motion(o: InferOptions, source: footage.FrameSource) -> tuple[np.ndarray, float]:
     """Camera positions (frames, 3) m and the frame rate (frames/s) of the preview."""
     fps = o.fps or source.fps
     if o.speed is not None:
         if fps is None:
             raise ValueError("--fps: needed with --speed (the input does not give its frame rate)")
-        return video.constant_speed_positions(o.speed, fps, source.count), fps
-    positions, times = video.read_poses(o.poses, source.count, fps)
+        return footage.constant_speed_positions(o.speed, fps, source.count), fps
+    positions, times = footage.read_poses(o.poses, source.count, fps)
     if fps is None and times is not None and len(times) > 1:
         fps = 1.0 / float(np.median(np.diff(times)))
     if fps is None:
@@ -158,7 +158,7 @@ def default_max_shift(positions: np.ndarray, d0: float) -> int:
     return int(min(MAX_MAX_SHIFT, max(MIN_MAX_SHIFT, 2 * math.ceil(d0 / np.median(steps)))))
 
 
-def _geometry(o: InferOptions, info: dict, source: video.FrameSource) -> tuple:
+def _geometry(o: InferOptions, info: dict, source: footage.FrameSource) -> tuple:
     """Network input size, crop box, focal lengths and the field-of-view warning (or None)."""
     w, h = o.res or (info["width"], info["height"])
     if w % 64 or h % 64 or not (64 <= w <= MAX_RES and 64 <= h <= MAX_RES):
@@ -166,9 +166,9 @@ def _geometry(o: InferOptions, info: dict, source: video.FrameSource) -> tuple:
             f"--res: the network needs multiples of 64 pixels from 64 to {MAX_RES}, got {w}x{h}"
             + ("" if o.res else f" (the training size of --ckpt {o.ckpt}; give --res)")
         )
-    f_train = video.focal_px(w, info["fov_deg"])
-    f_video = video.focal_px(source.width, o.fov or info["fov_deg"], o.focal)
-    crop = video.crop_box(source.width, source.height, w, h, f_video, f_train)
+    f_train = footage.focal_px(w, info["fov_deg"])
+    f_video = footage.focal_px(source.width, o.fov or info["fov_deg"], o.focal)
+    crop = footage.crop_box(source.width, source.height, w, h, f_video, f_train)
     focals = {"video_focal_px": f_video, "train_focal_px_at_output": f_train}
     warning = None
     if crop.factor < 1:
@@ -196,7 +196,7 @@ def _check_fixed_shift(o: InferOptions, frames: int) -> None:
 def prepare(o: InferOptions) -> Job:
     """Check every option and input, load the network: ValueError of one line naming the flag.
     Nothing is written."""
-    from .train import resolve_device
+    from ..core.device import resolve_device
 
     check_options(o)
     device = resolve_device(o.device)
@@ -206,7 +206,7 @@ def prepare(o: InferOptions) -> Job:
     if not o.ckpt.is_file():
         raise ValueError(f"--ckpt: no such file '{o.ckpt}'")
     model, scale, info = depth_network(o.ckpt, "--ckpt", camera)
-    source = video.FrameSource(o.input)
+    source = footage.FrameSource(o.input)
     _check_fixed_shift(o, source.count)
     positions, fps = _motion(o, source)
     size, crop, focals, warning = _geometry(o, info, source)
@@ -224,8 +224,8 @@ class Outputs:
         self.folder, self.suffix, self.max_depth = folder, f".{depth_format}", max_depth
         (folder / "depth").mkdir(parents=True)
         (folder / "depth_png").mkdir()
-        self.lut = video.colour_lut()
-        self.preview = video.PreviewWriter(folder / "preview.mp4", job.fps, *job.size)
+        self.lut = footage.colour_lut()
+        self.preview = footage.PreviewWriter(folder / "preview.mp4", job.fps, *job.size)
         self.csv_file = open(folder / "frames.csv", "w", newline="")  # noqa: SIM115 - closed by close()
         self.csv = csv.writer(self.csv_file)
         self.csv.writerow(CSV_COLUMNS)
@@ -241,9 +241,9 @@ class Outputs:
 
     def frame(self, t: int, rgb: np.ndarray, depth: np.ndarray) -> None:
         """Depth file, colour PNG and preview frame of frame t."""
-        video.write_depth(self.folder / "depth" / f"{t:06d}{self.suffix}", depth)
-        colours = video.colourise(depth, self.max_depth, self.lut)
-        video.write_png(self.folder / "depth_png" / f"{t:06d}.png", colours)
+        footage.write_depth(self.folder / "depth" / f"{t:06d}{self.suffix}", depth)
+        colours = footage.colourise(depth, self.max_depth, self.lut)
+        footage.write_png(self.folder / "depth_png" / f"{t:06d}.png", colours)
         self.preview.write(rgb, colours)
 
     def close(self) -> None:
@@ -333,14 +333,14 @@ def _loop(job: Job, o: InferOptions, folder: Path) -> dict:
     bar = tqdm(total=job.source.count, unit="frame", disable=o.quiet, desc="infer")
     try:
         for t, frame in enumerate(job.source):
-            rgb = video.prepare_frame(frame, job.crop, *job.size)
+            rgb = footage.prepare_frame(frame, job.crop, *job.size)
             ring.append(rgb)
             stats["frames"] += 1
             bar.update()
             if t == 0:
                 outputs.row(0, "first frame (no earlier frame)")
                 continue
-            available = video.displacements(job.positions, t, len(ring) - 1)
+            available = footage.displacements(job.positions, t, len(ring) - 1)
             est = frame_depth(planner, available, lambda s: network_outputs(*net, ring, s))
             if est is None:
                 stats["no_motion"] += 1

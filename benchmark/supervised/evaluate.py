@@ -4,10 +4,10 @@ Depth is scaled by the known displacement, never by the ground truth: a depth ne
 its training set's nominal displacement (shift × metres per frame), so its output is multiplied
 by |translation of the pair| / nominal displacement. A flow network's 1/4-resolution flow is
 upsampled bilinearly to full resolution (its values are already full-resolution pixels), turned
-into depth with the pair's known translation (benchmark.flow.depth_from_flow, clamped to
+into depth with the pair's known translation (benchmark.core.flow.depth_from_flow, clamped to
 [0.1, 100] m, every pixel kept, the FOE's neighbourhood included) and its end-point error (EPE)
 against the exact flow is reported too. ``oracle-flow`` feeds the exact flow to the same geometry;
-``constant`` predicts one depth everywhere. Metrics: benchmark.metrics (per image at full
+``constant`` predicts one depth everywhere. Metrics: benchmark.core.metrics (per image at full
 resolution; then equal-weight mean over images), plus the original DepthNet "depth error" at 1/4
 resolution (for methods without a 1/4-resolution depth output: their full-resolution depth,
 area-downsampled by 4).
@@ -24,7 +24,7 @@ import torch.nn.functional as F
 
 from stillbox_gen.conventions import MAX_DEPTH
 
-from . import flow, geometry, metrics, runfolder
+from ..core import flow, geometry, metrics, runfolder
 
 
 @dataclass

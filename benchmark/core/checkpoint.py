@@ -14,14 +14,10 @@ import pickle
 import re
 import warnings
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import torch
 
 from . import registry
-
-if TYPE_CHECKING:
-    from .multishift import DepthScale
 
 
 def first_line(e: Exception) -> str:
@@ -151,59 +147,3 @@ def load_weights(model: torch.nn.Module, ck: dict, where: str, name: str) -> Non
         model.load_state_dict(theirs)
     except (RuntimeError, TypeError, ValueError) as e:
         raise ValueError(f"{where}: weights do not load into '{name}' ({first_line(e)})") from None
-
-
-def _training_camera(ck: dict, where: str) -> dict:
-    """The training camera ``{"width", "height", "fov_deg"}`` (pixels, pixels, horizontal
-    degrees): the checkpoint's ``camera`` entry, else its training dataset's (data.camera_of)."""
-    from .data import DataError, camera_of
-
-    cam = ck.get("camera")
-    if not isinstance(cam, dict):
-        data = (ck.get("config") or {}).get("data")
-        try:
-            return camera_of(str(data))
-        except (DataError, KeyError, TypeError):
-            raise ValueError(
-                f"{where}: no training camera (the checkpoint has none and its dataset "
-                f"'{data}' is not readable); give --train-fov DEG and --res WxH"
-            ) from None
-    return {"width": cam["width"], "height": cam["height"], "fov_deg": float(cam["fov_deg"])}
-
-
-def depth_network(
-    path: str | Path, flag: str = "--ckpt", camera: dict | None = None
-) -> tuple[torch.nn.Module, DepthScale, dict]:
-    """A depth network ready for inference: ``(model, scale, info)``.
-
-    ``model``: the checkpoint's network in eval mode on the CPU; ``scale``:
-    :class:`benchmark.multishift.DepthScale` with ``theta_max`` = the upper bound of the training
-    depth range (m; MAX_DEPTH unless the checkpoint has a ``depth_range``) and ``d0`` = its
-    nominal displacement (m); ``info``: the training camera (``width``, ``height`` in pixels,
-    ``fov_deg`` horizontal degrees; from the checkpoint's ``camera``, else from its training
-    dataset's dataset.json, else ``camera`` given here, which also overrides them),
-    ``depth_range`` [lo, hi] (m), ``clamp`` (the range outputs must be clamped to, None unless
-    narrower than [0, MAX_DEPTH]: registry.output_clamp) and ``model_name``. A checkpoint of a
-    method that does not output depth (flow networks) is refused: ValueError of one line naming
-    ``flag`` and the file.
-    """
-    from stillbox_gen.conventions import MAX_DEPTH
-
-    from .multishift import DepthScale
-
-    where = f"{flag} {path}"
-    ck = load_checkpoint(path, flag)
-    name = ck["model_name"]
-    output = registry.MODELS[name].output
-    if output != "depth":
-        raise ValueError(
-            f"{where}: '{name}' predicts {output}, not depth; give a depth network's checkpoint"
-        )
-    model = registry.build_model(name)
-    load_weights(model, ck, where, name)
-    model.eval()
-    lo, hi = (float(v) for v in ck.get("depth_range", (0.0, MAX_DEPTH)))  # load_checkpoint
-    d0 = float(ck["nominal_displacement"])  # checked them (check_metadata)
-    info = camera if camera is not None else _training_camera(ck, where)
-    info = {**info, "depth_range": [lo, hi], "clamp": registry.output_clamp((lo, hi))}
-    return model, DepthScale(theta_max=hi, d0=d0), {**info, "model_name": name}

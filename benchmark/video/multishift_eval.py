@@ -2,8 +2,8 @@
 
 The thesis' Fig. 6.6 analogue. Each test sequence (e.g. ``stillbox-gen --frames 30
 --rotation-noise 0.0331``: the orientation noise of thesis 6.4) is run frame by frame as
-``stillbox-bench infer`` runs a video (benchmark.infer.frame_depth), once per depth checkpoint and
-strategy:
+``stillbox-bench infer`` runs a video (benchmark.video.infer.frame_depth), once per depth
+checkpoint and strategy:
 
 - ``nominal``: always the shift whose displacement is closest to the network's d0 (DepthNet's
   3 frames), the pairs it was trained on;
@@ -13,10 +13,10 @@ strategy:
 
 The planner starts afresh on each sequence at frame 1; frames t ≥ ``max_shift`` are scored (every
 strategy has every shift there, and has seen earlier frames), the same frames for every strategy,
-against the frame's ground-truth depth: MAE, MRE, MLE (benchmark.metrics: per image, then the mean
-over images) overall and per band of ground-truth depth (BANDS; a band's metrics are per image over
-its pixels, averaged over the images that have some), plus the network's time per frame (the n
-pairs are one batch). Displacements come from the camera positions of each frame.
+against the frame's ground-truth depth: MAE, MRE, MLE (benchmark.core.metrics: per image, then
+the mean over images) overall and per band of ground-truth depth (BANDS; a band's metrics are per
+image over its pixels, averaged over the images that have some), plus the network's time per
+frame (the n pairs are one batch). Displacements come from the camera positions of each frame.
 """
 
 from __future__ import annotations
@@ -35,11 +35,17 @@ from tqdm import tqdm
 
 from stillbox_gen.dataset import Dataset, Scene
 
-from . import metrics, runfolder
-from .checkpoint import depth_network
-from .config import MULTISHIFT_MAX_SHIFT
+from ..core import metrics, runfolder
 from .infer import frame_depth, network_outputs
-from .multishift import BETA_MEAN, EMA_LAMBDA, MAX_SHIFTS, ShiftPlanner, closest_shift
+from .multishift import (
+    BETA_MEAN,
+    EMA_LAMBDA,
+    MAX_SHIFTS,
+    MULTISHIFT_MAX_SHIFT,
+    ShiftPlanner,
+    closest_shift,
+)
+from .network import depth_network
 
 BANDS = ((0.0, 10.0), (10.0, 25.0), (25.0, 50.0), (50.0, 100.0))  # ground-truth depth, metres
 SCORES = ("mae", "mre", "mle")

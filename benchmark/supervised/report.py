@@ -1,5 +1,5 @@
 """Run reports: the content of summary.json / summary.md, the figures of a run, and comparison
-tables across runs. Files are written by benchmark.runfolder (docs/RUNS.md)."""
+tables across runs. Files are written by benchmark.core.runfolder (docs/RUNS.md)."""
 
 from __future__ import annotations
 
@@ -11,9 +11,10 @@ import numpy as np
 
 from stillbox_gen.conventions import MAX_DEPTH, NOMINAL_SHIFT
 
-from . import metrics, plots, registry, runfolder
+from ..core import metrics, registry, runfolder
+from ..core.runfolder import plot_path
+from . import plots
 from .evaluate import EvalResult
-from .runfolder import plot_path
 
 COLUMNS = ("mae", "mre", "mle", "sae", "sle", "p1.25", "p1.25^2", "p1.25^3", "depth_error", "epe")
 HEADERS = (

@@ -22,9 +22,9 @@ from pathlib import Path
 
 import torch
 
-from . import registry
-from .config import TrainConfig
-from .data import EpochSampler, FrameStore, PairDataset, load_scenes
+from ..core import registry
+from ..core.config import TrainConfig
+from ..core.data import EpochSampler, FrameStore, PairDataset, load_scenes
 from .speed import TRAIN_BATCHES, _sync, csv_name
 from .train import TrainStep, make_optimizer
 

@@ -1,6 +1,6 @@
 """The configuration of a training run, as written to its ``config.json`` (docs/RUNS.md).
 
-Hyper-parameters default to DepthNet's recipe (:data:`benchmark.registry.DEPTH_RECIPE`); a run
+Hyper-parameters default to DepthNet's recipe (:data:`benchmark.core.registry.DEPTH_RECIPE`); a run
 of another method starts from that method's recipe (``runner.train_config``). The command line's
 defaults are read from here (:func:`default`), so every number is written once.
 """
@@ -14,9 +14,6 @@ from .registry import DEPTH_RECIPE
 _R = DEPTH_RECIPE
 
 EVAL_BATCH_SIZE = 64  # pairs per forward pass when scoring (results do not depend on it)
-#: eval-multishift's largest frame shift (frames; 1.2 m at StillBox's 0.1 m per frame): frames
-#: t >= it of each sequence are scored
-MULTISHIFT_MAX_SHIFT = 12
 #: the largest --seed: torch.manual_seed takes an unsigned 64-bit integer
 MAX_SEED = 2**64 - 1
 
@@ -26,7 +23,7 @@ class TrainConfig:
     """Everything a training run depends on.
 
     ``model``: registry name; ``data``: dataset folder; ``out``: run folder. The recipe fields
-    (``epochs`` … ``depth_range``) are those of :class:`benchmark.registry.Recipe` (``shift``:
+    (``epochs`` … ``depth_range``) are those of :class:`benchmark.core.registry.Recipe` (``shift``:
     nominal frame shift of the pairs; ``depth_range``: metres, targets clipped and outputs
     clamped to it); ``threads``: torch intra-op threads (0: torch's default); ``ckpt_every``:
     optimiser steps between mid-epoch ``last.pt`` checkpoints (0: epoch ends only);

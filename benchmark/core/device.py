@@ -1,0 +1,19 @@
+"""The torch device of a command: `--device` resolved once (training, scoring, inference)."""
+
+from __future__ import annotations
+
+import re
+
+import torch
+
+
+def resolve_device(name: str) -> torch.device:
+    """``auto`` (CUDA when available), ``cpu``, ``cuda`` or ``cuda:N``; ValueError naming
+    --device otherwise."""
+    if not re.fullmatch(r"auto|cpu|cuda(:\d+)?", name):
+        raise ValueError(f"--device: unknown device '{name}' (auto, cpu, cuda or cuda:N)")
+    if name == "auto":
+        name = "cuda" if torch.cuda.is_available() else "cpu"
+    if name.startswith("cuda") and not torch.cuda.is_available():
+        raise ValueError(f"--device {name}: no CUDA device is available")
+    return torch.device(name)
