@@ -402,5 +402,5 @@ def test_rendered_scene_as_mp4_and_as_frames(tiny_dataset, files, tmp_path):
     assert [pairs.items[i] for i in mine] == [(0, f) for f in mine]
     batch = torch.utils.data.default_collate([pairs[i] for i in mine])
     with torch.no_grad():
-        want = predict(Method("depth", model, 0.3), batch, torch.device("cpu"))["depth"]
+        want = predict(Method(registry.DEPTH, model, 0.3), batch, torch.device("cpu"))["depth"]
     np.testing.assert_allclose(got, want.numpy(), rtol=1e-4, atol=1e-4)

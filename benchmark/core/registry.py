@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, replace
+from enum import Enum, auto
 
 from torch import nn
 
@@ -66,8 +67,50 @@ FLOW_RECIPE = replace(DEPTH_RECIPE, optimizer="adam", lr=1e-4, loss_scale=1.0 / 
 CLAMPED_RECIPE = replace(DEPTH_RECIPE, shift=5, depth_range=(10.0, 60.0))
 THIN_WIDTH = 0.5  # channel multiplier of the thin clamped DepthNet (thesis 6.4: half the maps)
 
-#: what a method outputs: a depth network, a flow network (depth by geometry), or no network
-OUTPUTS = ("depth", "flow", "oracle-flow", "constant")
+
+class Target(Enum):
+    """What a method's network learns and outputs (the value: data.PairDataset's ``target``)."""
+
+    DEPTH = "depth"  # metres, multi-scale list as DepthNet; multi-scale L1 loss
+    FLOW = "flow"  # pixels of the input resolution, multi-scale list; multi-scale EPE loss
+
+
+class Scoring(Enum):
+    """How a method's depth is obtained when it is scored (evaluate.predict)."""
+
+    DEPTH = auto()  # the network's depth × |pair translation| / nominal displacement
+    FLOW = auto()  # depth from the network's flow and the known translation (core.flow)
+    EXACT_FLOW = auto()  # the same geometry fed with the exact (ground-truth) flow
+    CONSTANT = auto()  # the training split's median depth at every pixel
+
+
+@dataclass(frozen=True)
+class Kind:
+    """What a kind of method outputs, whether it trains and how it is scored.
+
+    ``name``: summary.json's ``output``; ``target``: what its network learns (None: no network,
+    nothing to build, train or load); ``scored_as``: how its depth is obtained when scored;
+    ``best_by``: the validation metric (a key of evaluate's summary) that picks ``best.pt``
+    (None without training).
+    """
+
+    name: str
+    target: Target | None
+    scored_as: Scoring
+    best_by: str | None = None
+
+    @property
+    def trains(self) -> bool:
+        """A network, trained by train.Trainer and saved in checkpoints."""
+        return self.target is not None
+
+
+DEPTH = Kind("depth", Target.DEPTH, Scoring.DEPTH, best_by="mae")
+FLOW = Kind("flow", Target.FLOW, Scoring.FLOW, best_by="epe")
+ORACLE_FLOW = Kind("oracle-flow", None, Scoring.EXACT_FLOW)
+CONSTANT = Kind("constant", None, Scoring.CONSTANT)
+#: every kind of method: a depth network, a flow network (depth by geometry), or no network
+KINDS = (DEPTH, FLOW, ORACLE_FLOW, CONSTANT)
 
 TINY_WIDTH = 0.125  # channel multiplier of the -tiny variants
 
@@ -77,22 +120,25 @@ class ModelSpec:
     """A registered method.
 
     ``build()`` returns a freshly initialised network, or is None for methods without one
-    (``oracle-flow``, ``constant``: nothing to train). ``output`` says what the network predicts
-    and how depth is obtained: "depth" (metres, multi-scale list as DepthNet), "flow" (pixels,
-    multi-scale list; depth from flow and the known translation), "oracle-flow" (ground-truth
-    flow through the same geometry), "constant" (the training set's median depth everywhere).
+    (``oracle-flow``, ``constant``: nothing to train). ``kind`` says what it outputs, whether it
+    trains and how its depth is scored (:class:`Kind`: DEPTH, FLOW, ORACLE_FLOW, CONSTANT).
     ``recipe``: its training hyper-parameters (None without a network).
     """
 
     name: str
     description: str
     build: Callable[[], nn.Module] | None
-    output: str = "depth"
+    kind: Kind = DEPTH
     recipe: Recipe | None = DEPTH_RECIPE
+
+    def __post_init__(self) -> None:
+        if (self.build is not None) != self.kind.trains or (self.recipe is None) == self.trainable:
+            raise ValueError(f"{self.name}: a network, a recipe and a training kind go together")
 
     @property
     def trainable(self) -> bool:
-        return self.build is not None
+        """A network to build and train (its kind trains)."""
+        return self.kind.trains
 
 
 def _specs() -> list[ModelSpec]:
@@ -136,28 +182,28 @@ def _specs() -> list[ModelSpec]:
             "flownets-flow",
             "FlowNetS (BN) for optical flow; depth from flow and the known translation",
             lambda: FlowNetS("flow", batch_norm=True),
-            "flow",
+            FLOW,
             FLOW_RECIPE,
         ),
         ModelSpec(
             "flownets-flow-tiny",
             f"flownets-flow {tiny}",
             lambda: FlowNetS("flow", width=TINY_WIDTH, batch_norm=True),
-            "flow",
+            FLOW,
             FLOW_RECIPE,
         ),
         ModelSpec(
             "oracle-flow",
             "ground-truth flow -> depth by the FOE geometry (checks geometry vs metadata)",
             None,
-            "oracle-flow",
+            ORACLE_FLOW,
             None,
         ),
         ModelSpec(
             "constant",
             "the training set's median depth at every pixel (the floor to beat)",
             None,
-            "constant",
+            CONSTANT,
             None,
         ),
     ]

@@ -107,7 +107,7 @@ def score_checkpoint(
     depth_range = ck.get("depth_range", [0.0, MAX_DEPTH])
     clamp = registry.output_clamp(depth_range)
     method = Method(
-        registry.MODELS[name].output, model, ck["nominal_displacement"], depth_range=clamp
+        registry.MODELS[name].kind, model, ck["nominal_displacement"], depth_range=clamp
     )
     runfolder.make_folder(out)  # after every check, before the evaluation's minutes
     t0 = time.perf_counter()
@@ -144,8 +144,8 @@ def score_baseline(
         raise ValueError(f"{name}: a network; train it with 'run'")
     dev = resolve_device(device)
     info: dict = {"dataset": str(data)}
-    method = Method(spec.output)
-    if spec.output == "constant":
+    method = Method(spec.kind)
+    if spec.kind.scored_as is registry.Scoring.CONSTANT:
         method.constant, frames = median_depth(load_scenes(data, "train"))
         info["constant_depth"] = method.constant
         info["constant_rule"] = (
@@ -163,7 +163,7 @@ def score_baseline(
     info.update(split=split, scenes=len(scenes), shift=shift)
     info["eval_seconds"] = round(time.perf_counter() - t0, 2)
     extra, md = {}, ""
-    if spec.output == "oracle-flow":
+    if spec.kind.scored_as is registry.Scoring.EXACT_FLOW:
         extra, md = _oracle_sensitivity(dataset, dev, batch_size)
     return write_scores(out, name, result, info, extra, md)
 
@@ -173,7 +173,7 @@ def _oracle_sensitivity(dataset: PairDataset, dev, batch_size: int) -> tuple[dic
     and error by FOE distance) and the summary.md section showing how the geometry degrades
     near the FOE."""
     noisy = evaluate(
-        Method("oracle-flow", flow_noise=ORACLE_FLOW_NOISE_PX), dataset, dev, batch_size
+        Method(registry.ORACLE_FLOW, flow_noise=ORACLE_FLOW_NOISE_PX), dataset, dev, batch_size
     )
     bins = report.foe_bins(noisy.pixels["foe_distance"], noisy.pixels["abs_err"])
     extra = {

@@ -270,7 +270,7 @@ class Trainer:
             raise ValueError(f"--resume {last}: holds no training state (not a 'last.pt')")
         if resume is not None:
             check_resumed_settings(cfg, resume, last)
-        self.output = spec.output  # "depth" or "flow"
+        self.kind = spec.kind
         self.model = spec.build().to(self.device)
         self.nominal_displacement = None
         if cfg.pretrained and resume is None:  # resuming: the checkpoint's weights
@@ -337,7 +337,7 @@ class Trainer:
         disp = np.median([s.displacement for s in train_scenes])
         self.nominal_displacement = float(cfg.shift * disp)
         self.train_set = PairDataset(
-            self.train_store, "train", cfg.shift, cfg.seed, self.output, cfg.depth_range
+            self.train_store, "train", cfg.shift, cfg.seed, self.kind.target.value, cfg.depth_range
         )
         self.val_set = PairDataset(self.val_store, "eval", cfg.shift)
         self.per_rank_batch = max(1, cfg.batch_size // self.world)
@@ -465,7 +465,7 @@ class Trainer:
     def validate(self) -> dict:
         result = evaluate.evaluate(
             evaluate.Method(
-                self.output,
+                self.kind,
                 self.model,
                 self.nominal_displacement,
                 depth_range=registry.output_clamp(self.cfg.depth_range),
@@ -507,7 +507,7 @@ class Trainer:
                 f"step {st['global_step']}: train loss {train_loss:.3f}, val MAE "
                 f"{val['mae']:.3f} m, MRE {val['mre']:.3f}, MLE {val['mle']:.3f}{epe}"
             )
-            score = val["epe"] if self.output == "flow" else val["mae"]
+            score = val[self.kind.best_by]
             if score < st["best"] or not runfolder.checkpoint_path(self.run, "best").exists():
                 if score < st["best"]:  # a NaN score never becomes the best
                     st["best"] = score

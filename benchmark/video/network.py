@@ -50,10 +50,10 @@ def depth_network(
     where = f"{flag} {path}"
     ck = load_checkpoint(path, flag)
     name = ck["model_name"]
-    output = registry.MODELS[name].output
-    if output != "depth":
+    kind = registry.MODELS[name].kind
+    if kind.scored_as is not registry.Scoring.DEPTH:
         raise ValueError(
-            f"{where}: '{name}' predicts {output}, not depth; give a depth network's checkpoint"
+            f"{where}: '{name}' predicts {kind.name}, not depth; give a depth network's checkpoint"
         )
     model = registry.build_model(name)
     load_weights(model, ck, where, name)
