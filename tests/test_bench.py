@@ -433,3 +433,40 @@ def test_bad_flow_benchmark_input_is_a_one_line_error(args, words):
     lines = proc.stderr.strip().splitlines()
     assert proc.returncode == 2 and len(lines) == 1, proc.stderr
     assert all(w in lines[0] for w in words), lines[0]
+
+
+def test_every_flagged_setting_is_an_option_of_its_commands():
+    """TrainConfig's fields carry their flags: 'run' and 'compare' offer exactly the fields whose
+    Flag has a help text for them, each under its field's name, so that a new knob is one field
+    of TrainConfig; the training config copies what they give."""
+    from benchmark.cli import supervised
+    from benchmark.cli.options import training_settings
+    from benchmark.core.config import FLAGGED
+
+    for command in ("run", "compare"):
+        params = {p.name: p for p in getattr(supervised, command).params}
+        for f in FLAGGED:
+            flag = f.metadata["flag"]
+            offered = command in flag.help
+            assert (f.name in params) == offered, (command, f.name)
+            if offered:
+                assert flag.name in params[f.name].opts, (command, f.name)
+    given = {f.name: None for f in FLAGGED} | {"device": "cpu", "depth_range": "10,60"}
+    settings = training_settings(given | {"progress": True, "pretrained": Path("p.pt")})
+    assert settings["depth_range"] == (10.0, 60.0) and settings["progress"] is False
+    assert settings["pretrained"] == "p.pt" and settings["epochs"] is None
+
+
+def test_settings_are_checked_by_field_and_named_by_flag():
+    """One rule per TrainConfig field: the library names the field, the command line the flag."""
+    from benchmark.cli.options import UserError, training_settings
+    from benchmark.core.config import SettingError, check_settings
+
+    with pytest.raises(SettingError, match=r"^log_every: must be at least 1, got 0$") as e:
+        check_settings({"epochs": 3, "log_every": 0})
+    assert (e.value.field, e.value.value) == ("log_every", 0)
+    check_settings({"epochs": None, "seed": 2**64 - 1})  # None: the default applies
+    with pytest.raises(UserError, match=r"^--log-every: must be at least 1, got 0$"):
+        training_settings({"log_every": 0, "device": "cpu"})
+    with pytest.raises(UserError, match=r"^--clamp: expected LO,HI in metres"):
+        training_settings({"depth_range": "10", "device": "cpu"})

@@ -11,7 +11,8 @@ import click
 from stillbox_gen.conventions import default_root
 
 from ..core import registry
-from ..core.config import default
+from ..core.config import FLAGGED, SettingError, check_settings, flag_of
+from ..core.registry import CLAMPED_RECIPE, DEPTH_RECIPE
 
 if TYPE_CHECKING:
     import torch
@@ -82,11 +83,75 @@ DATA_OPTION = click.option(
     show_default=True,
     help=f"Dataset folder made by stillbox-gen (the default is made by '{MAKE_DEFAULT_DATA}').",
 )
-DEVICE_OPTION = click.option(
-    "--device", default=default("device"), show_default=True, help="auto | cpu | cuda | cuda:N."
-)
-PREDICTIONS_OPTION = click.option(
-    "--save-predictions",
-    is_flag=True,
-    help="Store predicted depth maps (float32 .npy, full resolution).",
-)
+# ---------------------------------------------------------------- TrainConfig's settings
+
+_FIELDS = {f.name: f for f in FLAGGED}
+_TYPES = {"int": int, "float": float, "text": str}
+
+
+def _shown(value) -> str:
+    """A recipe value as --help shows it: 0.01, 55; a range as 10,60."""
+    return ",".join(f"{v:g}" for v in value) if isinstance(value, tuple) else f"{value:g}"
+
+
+def setting_option(name: str, command: str):
+    """The click option of TrainConfig field ``name`` in ``command`` ("run", "compare"), made
+    from the field's Flag; its value is passed as ``name``. A recipe field has no click default
+    (None: the model's recipe applies); another shows the field's default."""
+    field_, flag = _FIELDS[name], _FIELDS[name].metadata["flag"]
+    text, kw = flag.help[command], {"metavar": flag.metavar}
+    if flag.kind == "flag":
+        kw["is_flag"] = True
+    elif flag.kind == "path":
+        kw["type"] = click.Path(path_type=Path)
+    elif flag.kind in _TYPES:
+        kw["type"] = _TYPES[flag.kind]
+    if field_.metadata["recipe"]:
+        depth, clamped = (_shown(getattr(r, name)) for r in (DEPTH_RECIPE, CLAMPED_RECIPE))
+        text = text.format(depth=depth, clamped=clamped)
+    elif flag.kind != "flag":
+        kw.update(default=field_.default, show_default=field_.default is not None)
+    return click.option(flag.decl, name, help=text, **kw)
+
+
+def setting_options(command: str, order: tuple[str, ...] = ()):
+    """Every click option of TrainConfig's fields that ``command`` offers: the fields in
+    ``order`` first (in that order), then the others in TrainConfig's order."""
+    names = [f.name for f in FLAGGED if command in f.metadata["flag"].help]
+    names = [n for n in order if n in names] + [n for n in names if n not in order]
+
+    def decorate(function):
+        for name in reversed(names):  # the first option ends up first in --help
+            function = setting_option(name, command)(function)
+        return function
+
+    return decorate
+
+
+def flag_error(e: SettingError) -> UserError:
+    """A TrainConfig value's error in the command line's terms: its flag instead of its field."""
+    return UserError(f"{flag_of(e.field).name}: {e.requirement}, got {e.value}")
+
+
+def training_settings(o: dict) -> dict:
+    """TrainConfig values from a command's setting options ``o`` (by field name; None: the
+    default applies): checked against their rules and --device, then parsed. UserError
+    naming the flag."""
+    given = {name: value for name, value in o.items() if name in _FIELDS}
+    try:
+        check_settings(given)
+    except SettingError as e:
+        raise flag_error(e) from None
+    torch_device(given["device"])
+    values = {}
+    for name, value in given.items():
+        parse = _FIELDS[name].metadata["flag"].parse
+        try:
+            values[name] = parse(value) if parse is not None and value is not None else value
+        except ValueError as e:
+            raise UserError(str(e)) from None
+    return values
+
+
+DEVICE_OPTION = setting_option("device", "run")
+PREDICTIONS_OPTION = setting_option("save_predictions", "run")

@@ -2,16 +2,14 @@
 
 from __future__ import annotations
 
-import math
 import time
 from pathlib import Path
 
 import click
 
 from ..core import registry
-from ..core.config import EVAL_BATCH_SIZE, MAX_SEED, default
+from ..core.config import EVAL_BATCH_SIZE, SettingError, default
 from ..core.models import count_parameters
-from ..core.registry import CLAMPED_RECIPE, DEPTH_RECIPE
 from ..core.runfolder import (
     COMPARISON,
     SUMMARY_JSON,
@@ -27,41 +25,22 @@ from .options import (
     PREDICTIONS_OPTION,
     UserError,
     dataset_dir,
+    flag_error,
     int_option,
     is_default,
     model_names,
+    setting_options,
     torch_device,
+    training_settings,
 )
 
-
-def _clamp_option(text: str | None) -> tuple[float, float] | None:
-    """--clamp "LO,HI" -> (LO, HI) metres (UserError when not two numbers; the range itself is
-    checked by Trainer.setup, before the run folder exists)."""
-    if text is None:
-        return None
-    try:
-        lo, hi = (float(v) for v in text.split(","))
-    except ValueError:
-        raise UserError(f"--clamp: expected LO,HI in metres (e.g. 10,60), got '{text}'") from None
-    return (lo, hi)
-
-
-def _training_options(o: dict) -> None:
-    """Check the numeric training flags of 'run' and 'compare' (UserError naming the flag)."""
-    for flag in ("epochs", "max_steps", "batch_size"):
-        if o[flag] is not None and o[flag] < 1:
-            raise UserError(f"--{flag.replace('_', '-')}: must be at least 1, got {o[flag]}")
-    if o["lr"] is not None and not (o["lr"] > 0 and math.isfinite(o["lr"])):
-        raise UserError(f"--lr: must be a positive number, got {o['lr']}")
-    if o.get("log_every", 1) < 1:
-        raise UserError(f"--log-every: must be at least 1, got {o['log_every']}")
-    if o.get("ckpt_every", 0) < 0:
-        raise UserError(f"--ckpt-every: must be 0 (epoch ends only) or more, got {o['ckpt_every']}")
-    if o["threads"] < 0:
-        raise UserError(f"--threads: must be 0 (torch default) or more, got {o['threads']}")
-    if o["seed"] is not None and not 0 <= o["seed"] <= MAX_SEED:
-        raise UserError(f"--seed: must be an integer from 0 to {MAX_SEED}, got {o['seed']}")
-    torch_device(o["device"])
+#: run's setting options in the --help order they have always had; a new TrainConfig setting
+#: with a flag needs no entry here: it follows them
+RUN_HELP_ORDER = (
+    "epochs", "max_steps", "batch_size", "lr", "device", "threads", "seed", "pretrained", "resume",
+    "ckpt_every", "log_every", "shift", "depth_range", "channels_last", "compile", "amp",
+    "save_predictions", "progress",
+)  # fmt: skip
 
 
 @click.command("list")
@@ -87,65 +66,7 @@ def list_cmd() -> None:
     "checkpoints/last.pt needs --resume (or another --out); the logs of a run killed before "
     "its first checkpoint are replaced, as there is nothing to resume.",
 )
-@click.option(
-    "--epochs",
-    type=int,
-    help=f"Epochs (one sample per training frame each).  [default: model's, {DEPTH_RECIPE.epochs}]",
-)
-@click.option("--max-steps", type=int, help="Stop after this many optimiser steps (smoke runs).")
-@click.option(
-    "--batch-size",
-    type=int,
-    help=f"Samples per optimiser step.  [default: model's, {DEPTH_RECIPE.batch_size}]",
-)
-@click.option(
-    "--lr", type=float, help=f"Initial SGD learning rate.  [default: model's, {DEPTH_RECIPE.lr:g}]"
-)
-@DEVICE_OPTION
-@int_option("--threads", default("threads"), "Torch CPU threads (0 = torch default).")
-@int_option("--seed", default("seed"), "Seed of initialisation and pair sampling.")
-@click.option(
-    "--pretrained",
-    type=click.Path(path_type=Path),
-    help="Checkpoint to start from (curriculum 64->128->...).",
-)
-@click.option(
-    "--resume",
-    is_flag=True,
-    help="Continue the run in --out from checkpoints/last.pt, keeping its logs up to that "
-    "checkpoint (an interrupted epoch's train loss is logged as if never interrupted).",
-)
-@int_option("--ckpt-every", default("ckpt_every"), "Steps between mid-epoch checkpoints.")
-@int_option("--log-every", default("log_every"), "Steps between steps.csv rows.")
-@click.option(
-    "--shift",
-    type=int,
-    help=f"Nominal frame shift of the training pairs.  [default: model's, {DEPTH_RECIPE.shift}; "
-    f"{CLAMPED_RECIPE.shift} for depthnet-clamped*]",
-)
-@click.option(
-    "--clamp",
-    metavar="LO,HI",
-    help="Clip depth targets to [LO, HI] m and clamp the outputs to it where the network is used "
-    f"(thesis 6.4's clamped DepthNet).  [default: model's, "
-    f"{','.join(f'{v:g}' for v in DEPTH_RECIPE.depth_range)}; "
-    f"{','.join(f'{v:g}' for v in CLAMPED_RECIPE.depth_range)} for depthnet-clamped*]",
-)
-@click.option(
-    "--channels-last",
-    is_flag=True,
-    help="Channels-last memory format (1.12x at batch 256, 0.90x at batch 8 on the 2-core CPU).",
-)
-@click.option(
-    "--compile", "compile_", is_flag=True, help="torch.compile the network (off: slower here)."
-)
-@click.option(
-    "--amp/--no-amp",
-    default=None,
-    help="bfloat16 autocast of the forward pass.  [default: on CUDA only; changes results]",
-)
-@PREDICTIONS_OPTION
-@click.option("--quiet", is_flag=True, help="No progress bars.")
+@setting_options("run", RUN_HELP_ORDER)
 def run(model: str, data: Path, out: Path | None, **o) -> None:
     """Train MODEL on the train split, then score the best checkpoint and write a report.
 
@@ -169,13 +90,12 @@ def run(model: str, data: Path, out: Path | None, **o) -> None:
         raise UserError(f"--out: '{out}' already holds a run; add --resume or choose another --out")
     if o["resume"] and is_default("seed"):
         o["seed"] = None  # the run's own (runner.train_config)
-    _training_options(o)
-    o["depth_range"] = _clamp_option(o.pop("clamp"))  # range and --shift: Trainer.setup
+    settings = training_settings(o)  # --clamp's range and --shift: Trainer.setup
     if o["pretrained"] is not None and not o["pretrained"].is_file():
         raise UserError(f"--pretrained: no such file '{o['pretrained']}'")
     if not trainable and (o["pretrained"] or o["resume"]):
         raise UserError(f"MODEL: '{model}' has no network (no --pretrained or --resume)")
-    summary = _run_one(model, data, out, o)
+    summary = _run_one(model, data, out, settings)
     if summary is None:
         return
     m = summary["metrics"]
@@ -187,28 +107,15 @@ def run(model: str, data: Path, out: Path | None, **o) -> None:
     )
 
 
-def _run_one(model: str, data: Path, out: Path, o: dict) -> dict | None:
-    """runner.run_method with the command-line options; ValueError -> UserError."""
+def _run_one(model: str, data: Path, out: Path, settings: dict) -> dict | None:
+    """runner.run_method with TrainConfig ``settings`` from the command line (training_settings;
+    those a command lacks take TrainConfig's defaults); ValueError -> UserError."""
     from ..supervised.runner import run_method
 
-    keys = ("epochs", "max_steps", "batch_size", "lr", "shift", "depth_range")
-    overrides = {k: o.get(k) for k in keys}
-    overrides.update(  # options 'compare' lacks are None: TrainConfig's defaults
-        device=o["device"],
-        threads=o["threads"],
-        seed=o["seed"],
-        pretrained=str(o["pretrained"]) if o.get("pretrained") else None,
-        resume=o.get("resume"),
-        ckpt_every=o.get("ckpt_every"),
-        log_every=o.get("log_every"),
-        save_predictions=o.get("save_predictions"),
-        channels_last=o.get("channels_last") or None,
-        compile=o.get("compile_") or None,
-        amp=o.get("amp"),
-        progress=not o["quiet"],
-    )
     try:
-        return run_method(model, data, out, **overrides)
+        return run_method(model, data, out, **settings)
+    except SettingError as e:
+        raise flag_error(e) from None
     except ValueError as e:
         raise UserError(str(e)) from None
 
@@ -306,20 +213,13 @@ def report(runs: tuple[Path, ...], out: Path) -> None:
     help="Folder: one run folder per method + comparison.{md,csv} and the FOE figure.  "
     "[default: runs/compare-<dataset>-<time>]",
 )
-@click.option("--epochs", type=int, help="Epochs of every network.  [default: model's]")
-@click.option("--max-steps", type=int, help="Stop every training after this many steps.")
-@click.option("--batch-size", type=int, help="Samples per optimiser step.  [default: model's]")
-@click.option("--lr", type=float, help="Initial learning rate.  [default: model's]")
-@DEVICE_OPTION
-@int_option("--threads", default("threads"), "Torch CPU threads.")
-@int_option("--seed", default("seed"), "Seed of every training.")
-@click.option("--quiet", is_flag=True, help="No progress bars.")
+@setting_options("compare")
 def compare(data: Path, names: str, out: Path | None, **o) -> None:
     """Run every method of --models on --data (reusing finished runs in --out), then write one
     comparison table and one error-vs-FOE-distance figure with every method."""
     chosen = model_names(names)
     data = dataset_dir(data)
-    _training_options(o)
+    settings = training_settings(o)
     if out is None:
         out = Path("runs") / f"compare-{data.resolve().name}-{time.strftime('%Y%m%d-%H%M%S')}"
     if out.exists() and not out.is_dir():
@@ -336,7 +236,7 @@ def compare(data: Path, names: str, out: Path | None, **o) -> None:
                     f"'stillbox-bench run {name} --resume --out {run_dir}' or remove it"
                 )
             click.echo(f"{name}: running into {run_dir}")
-            _run_one(name, data, run_dir, o)
+            _run_one(name, data, run_dir, settings)
         runs.append(run_dir)
     from ..supervised.report import write_comparison
 

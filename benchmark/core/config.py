@@ -1,21 +1,76 @@
 """The configuration of a training run, as written to its ``config.json`` (docs/RUNS.md).
 
-Hyper-parameters default to DepthNet's recipe (:data:`benchmark.core.registry.DEPTH_RECIPE`); a run
-of another method starts from that method's recipe (``runner.train_config``). The command line's
-defaults are read from here (:func:`default`), so every number is written once.
+Every setting of a run is one field of :class:`TrainConfig`, defined once here with, in its
+metadata (:func:`setting`), whether a method's recipe sets it (:data:`Recipe` is made of those
+fields; their defaults are DepthNet's recipe, the thesis one) and, for a setting the command line
+offers, its :class:`Flag`: declaration, help per command, how the flag's text becomes the value
+and the rule a value must follow. The click options of ``run`` and ``compare``, the copy of their
+values into a TrainConfig, the checks of those values (:func:`check_settings`) and the recipes
+are all read from these fields: a new training knob is one field here (plus its validation when
+it needs more than a rule). A run of a method starts from that method's recipe
+(``runner.train_config``).
 """
 
 from __future__ import annotations
 
-from dataclasses import MISSING, dataclass, fields
+import math
+import operator
+from collections.abc import Callable
+from dataclasses import MISSING, dataclass, field, fields, make_dataclass
+from typing import Any
 
-from .registry import DEPTH_RECIPE
-
-_R = DEPTH_RECIPE
+from stillbox_gen.conventions import MAX_DEPTH, NOMINAL_SHIFT
 
 EVAL_BATCH_SIZE = 64  # pairs per forward pass when scoring (results do not depend on it)
 #: the largest --seed: torch.manual_seed takes an unsigned 64-bit integer
 MAX_SEED = 2**64 - 1
+
+
+@dataclass(frozen=True)
+class Flag:
+    """How a TrainConfig field is set on the command line.
+
+    ``decl``: click's declaration (``"--epochs"``, ``"--amp/--no-amp"``); ``help``: its text per
+    command offering it (``"run"``, ``"compare"``); in a recipe field's text ``{depth}`` and
+    ``{clamped}`` stand for DepthNet's and the clamped DepthNet's values (the CLI fills them in).
+    ``kind``: ``"int"``, ``"float"``, ``"text"``, ``"path"`` (a file), ``"flag"`` (on when given)
+    or ``"switch"`` (``--x/--no-x``, None when neither is given); ``metavar``: click's.
+    ``parse``: the given value -> the field's (a ValueError of one line naming the flag when it
+    does not parse); ``rule``: (test, requirement): a given value must pass ``test``, else
+    :func:`check_settings` refuses it with ``requirement`` (e.g. "must be at least 1").
+    """
+
+    decl: str
+    help: dict[str, str]
+    kind: str = "int"
+    metavar: str | None = None
+    parse: Callable[[Any], Any] | None = None
+    rule: tuple[Callable[[Any], bool], str] | None = None
+
+    @property
+    def name(self) -> str:
+        """The flag as messages name it (``--amp`` for ``--amp/--no-amp``)."""
+        return self.decl.split("/")[0]
+
+
+def setting(default, *, recipe: bool = False, flag: Flag | None = None):
+    """A TrainConfig field: its ``default``, whether a method's recipe sets it (``recipe``) and
+    its command-line ``flag`` (None: not on the command line)."""
+    return field(default=default, metadata={"recipe": recipe, "flag": flag})
+
+
+def parse_range(text: str) -> tuple[float, float]:
+    """--clamp "LO,HI" -> (LO, HI) metres (ValueError naming --clamp when not two numbers; the
+    range itself is checked by Trainer.setup, before the run folder exists)."""
+    try:
+        lo, hi = (float(v) for v in text.split(","))
+    except ValueError:
+        raise ValueError(f"--clamp: expected LO,HI in metres (e.g. 10,60), got '{text}'") from None
+    return (lo, hi)
+
+
+AT_LEAST_1 = (lambda v: v >= 1, "must be at least 1")
+MODELS_DEFAULT = "  [default: model's]"  # a recipe field's default in compare's help
 
 
 @dataclass
@@ -23,12 +78,19 @@ class TrainConfig:
     """Everything a training run depends on.
 
     ``model``: registry name; ``data``: dataset folder; ``out``: run folder. The recipe fields
-    (``epochs`` … ``depth_range``) are those of :class:`benchmark.core.registry.Recipe` (``shift``:
-    nominal frame shift of the pairs; ``depth_range``: metres, targets clipped and outputs
-    clamped to it); ``threads``: torch intra-op threads (0: torch's default); ``ckpt_every``:
-    optimiser steps between mid-epoch ``last.pt`` checkpoints (0: epoch ends only);
-    ``log_every``: steps between ``steps.csv`` rows; ``cache``: decoded frames in memory (None:
-    when they fit).
+    (``epochs`` … ``depth_range``, the thesis recipe at 64/128 px, REFERENCE §5): ``milestones``
+    are fractions of the epoch count at which the learning rate is multiplied by ``gamma``
+    (epochs 19, 30, 44, 53 of 55); ``loss_weights`` weigh the outputs finest (1/4) to coarsest
+    (1/64); the loss is multiplied by ``loss_scale``. ``optimizer``: "sgd" (DepthNet recipe) or
+    "adam" (public FlowNetS flow recipe); ``momentum`` is SGD's momentum or Adam's beta1;
+    ``dampening`` is SGD's, ``beta2`` Adam's. ``shift``: the nominal frame shift of the training
+    pairs (the network answers for ``shift`` × metres per frame); ``depth_range``: metres,
+    training targets are clipped to it and a depth network's outputs are clamped to it when
+    scored or used (DepthNet: [0, 100] m, the clamped DepthNet of thesis 6.4: [10, 60] m).
+    ``max_steps``: stop after this many optimiser steps (smoke runs); ``threads``: torch
+    intra-op threads (0: torch's default); ``ckpt_every``: optimiser steps between mid-epoch
+    ``last.pt`` checkpoints (0: epoch ends only); ``log_every``: steps between ``steps.csv``
+    rows; ``cache``: decoded frames in memory (None: when they fit).
 
     Speed switches (README "Speed on this machine"; results equal within floating-point noise
     unless said): ``channels_last``: network and inputs in channels-last memory format (on this
@@ -43,41 +105,242 @@ class TrainConfig:
     model: str
     data: str
     out: str
-    epochs: int = _R.epochs
-    max_steps: int | None = None  # stop after this many optimiser steps (smoke runs)
-    batch_size: int = _R.batch_size
-    lr: float = _R.lr
-    optimizer: str = _R.optimizer
-    momentum: float = _R.momentum
-    dampening: float = _R.dampening
-    beta2: float = _R.beta2
-    weight_decay: float = _R.weight_decay
-    milestones: tuple[float, ...] = _R.milestones
-    gamma: float = _R.gamma
-    loss_weights: tuple[float, ...] = _R.loss_weights
-    loss_scale: float = _R.loss_scale
-    shift: int = _R.shift
-    depth_range: tuple[float, float] = _R.depth_range
-    device: str = "auto"
-    threads: int = 0
-    seed: int = 0
-    pretrained: str | None = None
-    resume: bool = False
-    eval_batch_size: int = EVAL_BATCH_SIZE
-    ckpt_every: int = 200
-    log_every: int = 10
-    cache: bool | None = None
-    save_predictions: bool = False
-    progress: bool = True
-    channels_last: bool = False
-    compile: bool = False
-    amp: bool | None = None
-    workers: int | None = None
+    epochs: int = setting(
+        55,
+        recipe=True,
+        flag=Flag(
+            "--epochs",
+            {
+                "run": "Epochs (one sample per training frame each).  [default: model's, {depth}]",
+                "compare": "Epochs of every network." + MODELS_DEFAULT,
+            },
+            rule=AT_LEAST_1,
+        ),
+    )
+    max_steps: int | None = setting(
+        None,
+        flag=Flag(
+            "--max-steps",
+            {
+                "run": "Stop after this many optimiser steps (smoke runs).",
+                "compare": "Stop every training after this many steps.",
+            },
+            rule=AT_LEAST_1,
+        ),
+    )
+    batch_size: int = setting(
+        256,
+        recipe=True,
+        flag=Flag(
+            "--batch-size",
+            {
+                "run": "Samples per optimiser step.  [default: model's, {depth}]",
+                "compare": "Samples per optimiser step." + MODELS_DEFAULT,
+            },
+            rule=AT_LEAST_1,
+        ),
+    )
+    lr: float = setting(
+        1e-2,
+        recipe=True,
+        flag=Flag(
+            "--lr",
+            {
+                "run": "Initial SGD learning rate.  [default: model's, {depth}]",
+                "compare": "Initial learning rate." + MODELS_DEFAULT,
+            },
+            kind="float",
+            rule=(lambda v: v > 0 and math.isfinite(v), "must be a positive number"),
+        ),
+    )
+    optimizer: str = setting("sgd", recipe=True)
+    momentum: float = setting(0.9, recipe=True)
+    dampening: float = setting(0.9, recipe=True)
+    beta2: float = setting(0.999, recipe=True)
+    weight_decay: float = setting(4e-4, recipe=True)
+    milestones: tuple[float, ...] = setting((19 / 55, 30 / 55, 44 / 55, 53 / 55), recipe=True)
+    gamma: float = setting(0.3, recipe=True)
+    loss_weights: tuple[float, ...] = setting((0.32, 0.08, 0.02, 0.01, 0.005), recipe=True)
+    loss_scale: float = setting(1.0, recipe=True)
+    shift: int = setting(
+        NOMINAL_SHIFT,
+        recipe=True,
+        flag=Flag(
+            "--shift",
+            {
+                "run": "Nominal frame shift of the training pairs.  [default: model's, {depth}; "
+                "{clamped} for depthnet-clamped*]"
+            },
+        ),
+    )
+    depth_range: tuple[float, float] = setting(
+        (0.0, MAX_DEPTH),
+        recipe=True,
+        flag=Flag(
+            "--clamp",
+            {
+                "run": "Clip depth targets to [LO, HI] m and clamp the outputs to it where the "
+                "network is used (thesis 6.4's clamped DepthNet).  [default: model's, {depth}; "
+                "{clamped} for depthnet-clamped*]"
+            },
+            kind="text",
+            metavar="LO,HI",
+            parse=parse_range,
+        ),
+    )
+    device: str = setting(
+        "auto",
+        flag=Flag(
+            "--device",
+            dict.fromkeys(("run", "compare"), "auto | cpu | cuda | cuda:N."),
+            kind="text",
+        ),
+    )
+    threads: int = setting(
+        0,
+        flag=Flag(
+            "--threads",
+            {"run": "Torch CPU threads (0 = torch default).", "compare": "Torch CPU threads."},
+            rule=(lambda v: v >= 0, "must be 0 (torch default) or more"),
+        ),
+    )
+    seed: int = setting(
+        0,
+        flag=Flag(
+            "--seed",
+            {
+                "run": "Seed of initialisation and pair sampling.",
+                "compare": "Seed of every training.",
+            },
+            rule=(lambda v: 0 <= v <= MAX_SEED, f"must be an integer from 0 to {MAX_SEED}"),
+        ),
+    )
+    pretrained: str | None = setting(
+        None,
+        flag=Flag(
+            "--pretrained",
+            {"run": "Checkpoint to start from (curriculum 64->128->...)."},
+            kind="path",
+            parse=str,
+        ),
+    )
+    resume: bool = setting(
+        False,
+        flag=Flag(
+            "--resume",
+            {
+                "run": "Continue the run in --out from checkpoints/last.pt, keeping its logs up to "
+                "that checkpoint (an interrupted epoch's train loss is logged as if never "
+                "interrupted)."
+            },
+            kind="flag",
+        ),
+    )
+    eval_batch_size: int = setting(EVAL_BATCH_SIZE)
+    ckpt_every: int = setting(
+        200,
+        flag=Flag(
+            "--ckpt-every",
+            {"run": "Steps between mid-epoch checkpoints."},
+            rule=(lambda v: v >= 0, "must be 0 (epoch ends only) or more"),
+        ),
+    )
+    log_every: int = setting(
+        10, flag=Flag("--log-every", {"run": "Steps between steps.csv rows."}, rule=AT_LEAST_1)
+    )
+    cache: bool | None = setting(None)
+    save_predictions: bool = setting(
+        False,
+        flag=Flag(
+            "--save-predictions",
+            {"run": "Store predicted depth maps (float32 .npy, full resolution)."},
+            kind="flag",
+        ),
+    )
+    progress: bool = setting(
+        True,
+        flag=Flag(
+            "--quiet",
+            dict.fromkeys(("run", "compare"), "No progress bars."),
+            kind="flag",
+            parse=operator.not_,
+        ),
+    )
+    channels_last: bool = setting(
+        False,
+        flag=Flag(
+            "--channels-last",
+            {
+                "run": "Channels-last memory format (1.12x at batch 256, 0.90x at batch 8 on the "
+                "2-core CPU)."
+            },
+            kind="flag",
+        ),
+    )
+    compile: bool = setting(
+        False,
+        flag=Flag(
+            "--compile", {"run": "torch.compile the network (off: slower here)."}, kind="flag"
+        ),
+    )
+    amp: bool | None = setting(
+        None,
+        flag=Flag(
+            "--amp/--no-amp",
+            {
+                "run": "bfloat16 autocast of the forward pass.  [default: on CUDA only; changes "
+                "results]"
+            },
+            kind="switch",
+        ),
+    )
+    workers: int | None = setting(None)
+
+
+#: TrainConfig's fields with a command-line flag, in TrainConfig's order
+FLAGGED = tuple(f for f in fields(TrainConfig) if f.metadata.get("flag") is not None)
+
+#: Training hyper-parameters of a method: TrainConfig's recipe fields, with their defaults
+#: (DepthNet's recipe); registry.DEPTH_RECIPE, FLOW_RECIPE, CLAMPED_RECIPE are instances.
+Recipe = make_dataclass(
+    "Recipe",
+    [
+        (f.name, f.type, field(default=f.default))
+        for f in fields(TrainConfig)
+        if f.metadata.get("recipe")
+    ],
+    frozen=True,
+)
+Recipe.__module__ = __name__
+Recipe.__doc__ = "Training hyper-parameters: TrainConfig's recipe fields (see its docstring)."
+
+
+def flag_of(name: str) -> Flag | None:
+    """The command-line flag of TrainConfig field ``name`` (None when it has none)."""
+    return {f.name: f.metadata.get("flag") for f in fields(TrainConfig)}[name]
+
+
+class SettingError(ValueError):
+    """A TrainConfig value breaking its field's rule: ``field``, ``requirement`` and ``value``;
+    the message names the field (the command line names its flag instead)."""
+
+    def __init__(self, name: str, requirement: str, value) -> None:
+        super().__init__(f"{name}: {requirement}, got {value}")
+        self.field, self.requirement, self.value = name, requirement, value
+
+
+def check_settings(values: dict) -> None:
+    """SettingError for the first of ``values`` (TrainConfig field -> value; None: the default
+    applies) that breaks its field's rule, in TrainConfig's order."""
+    for f in FLAGGED:
+        flag, value = f.metadata["flag"], values.get(f.name)
+        if value is not None and flag.rule is not None and not flag.rule[0](value):
+            raise SettingError(f.name, flag.rule[1], value)
 
 
 def default(name: str):
     """The default of TrainConfig field ``name`` (KeyError for a field without one)."""
-    field = {f.name: f for f in fields(TrainConfig)}[name]
-    if field.default is MISSING:
+    field_ = {f.name: f for f in fields(TrainConfig)}[name]
+    if field_.default is MISSING:
         raise KeyError(f"TrainConfig.{name} has no default")
-    return field.default
+    return field_.default

@@ -4,9 +4,9 @@ Methods (``MODELS``): DepthNet (depth directly), FlowNetS with a depth head, Flo
 flow followed by depth from flow and the known translation (benchmark.core.flow), the same
 geometry fed with ground-truth flow (``oracle-flow``) and a constant depth (``constant``); the last
 two have no network. ``-tiny`` variants (1/8 width) exist for tests and smoke runs. Each
-network's training hyper-parameters are a :class:`Recipe`; ``benchmark.core.config.TrainConfig``
-takes its defaults from :data:`DEPTH_RECIPE`, and a run of a method starts from that method's
-recipe.
+network's training hyper-parameters are a ``Recipe`` (benchmark.core.config: TrainConfig's recipe
+fields, whose defaults are :data:`DEPTH_RECIPE`), and a run of a method starts from that
+method's recipe.
 """
 
 from __future__ import annotations
@@ -17,40 +17,10 @@ from enum import Enum, auto
 
 from torch import nn
 
-from stillbox_gen.conventions import MAX_DEPTH, NOMINAL_SHIFT
+from stillbox_gen.conventions import MAX_DEPTH
 
+from .config import Recipe
 from .models import FLOW_DIV, DepthNet, FlowNetS
-
-
-@dataclass(frozen=True)
-class Recipe:
-    """Training hyper-parameters; the defaults are the thesis recipe at 64/128 px (REFERENCE §5).
-
-    ``milestones`` are fractions of the epoch count at which the learning rate is multiplied by
-    ``gamma`` (epochs 19, 30, 44, 53 of 55); ``loss_weights`` weigh the outputs finest (1/4)
-    to coarsest (1/64); the loss is multiplied by ``loss_scale``. ``momentum`` is SGD's momentum
-    or Adam's beta1; ``dampening`` is SGD's, ``beta2`` Adam's. ``shift``: the nominal frame
-    shift of the training pairs (the network answers for ``shift`` × metres per frame);
-    ``depth_range``: metres, training targets are clipped to it and a depth network's outputs
-    are clamped to it when scored or used (DepthNet: [0, 100] m, the clamped DepthNet of
-    thesis 6.4: [10, 60] m).
-    """
-
-    epochs: int = 55
-    batch_size: int = 256
-    lr: float = 1e-2
-    optimizer: str = "sgd"  # "sgd" (DepthNet recipe) or "adam" (public FlowNetS flow recipe)
-    momentum: float = 0.9
-    dampening: float = 0.9
-    beta2: float = 0.999
-    weight_decay: float = 4e-4
-    milestones: tuple[float, ...] = (19 / 55, 30 / 55, 44 / 55, 53 / 55)
-    gamma: float = 0.3
-    loss_weights: tuple[float, ...] = (0.32, 0.08, 0.02, 0.01, 0.005)
-    loss_scale: float = 1.0
-    shift: int = NOMINAL_SHIFT
-    depth_range: tuple[float, float] = (0.0, MAX_DEPTH)
-
 
 #: DepthNet's recipe (SGD, lr 0.01, momentum and dampening 0.9, weight decay 4e-4, batch 256,
 #: 55 epochs); depth networks are all trained with it (thesis Table 3.5).

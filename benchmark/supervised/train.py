@@ -33,7 +33,7 @@ from stillbox_gen.conventions import MAX_DEPTH
 
 from ..core import registry, runfolder
 from ..core.checkpoint import first_line, load_checkpoint, load_weights
-from ..core.config import TrainConfig
+from ..core.config import TrainConfig, check_settings, flag_of
 from ..core.data import (
     EpochBatches,
     EpochSampler,
@@ -170,22 +170,16 @@ class TrainStep:
 
 
 RESUME_KEYS = ("optimizer", "scheduler", "state")
-#: TrainConfig fields a resumed run keeps from its checkpoint's config, with their flags (None:
+#: TrainConfig fields a resumed run keeps from its checkpoint's config (those without a flag are
 #: set by the recipe only). A change would not be applied (optimiser, scheduler and sampling
 #: position come from the checkpoint) or would make the run differ from the one config.json
 #: describes, so it is refused; --max-steps, --device, --threads and the logging and speed
 #: options may change (they are applied and recorded).
-RESUMED_FIELDS = {
-    "epochs": "--epochs",
-    "batch_size": "--batch-size",
-    "lr": "--lr",
-    "shift": "--shift",
-    "depth_range": "--clamp",
-    "seed": "--seed",
-    "pretrained": "--pretrained",
-    **dict.fromkeys(("optimizer", "momentum", "dampening", "beta2", "weight_decay"), None),
-    **dict.fromkeys(("milestones", "gamma", "loss_weights", "loss_scale"), None),
-}
+RESUMED_FIELDS = (
+    *("epochs", "batch_size", "lr", "shift", "depth_range", "seed", "pretrained"),
+    *("optimizer", "momentum", "dampening", "beta2", "weight_decay"),
+    *("milestones", "gamma", "loss_weights", "loss_scale"),
+)
 
 
 def _plain(value):
@@ -206,7 +200,7 @@ def check_resumed_settings(cfg: TrainConfig, ck: dict, where: str) -> None:
         now = _plain(getattr(cfg, field))
         if now == then:
             continue
-        flag = RESUMED_FIELDS[field]
+        flag = flag_of(field)
         if flag is None:
             raise ValueError(
                 f"--resume {where}: trained with {field} {then}, this version's recipe has {now}"
@@ -215,8 +209,8 @@ def check_resumed_settings(cfg: TrainConfig, ck: dict, where: str) -> None:
             ",".join(f"{v:g}" for v in x) if field == "depth_range" else x for x in (then, now)
         ]
         raise ValueError(
-            f"{flag}: the run was trained with {shown[0]}, not {shown[1]}; a resumed run keeps "
-            f"its settings (leave {flag} out, or start a new --out)"
+            f"{flag.name}: the run was trained with {shown[0]}, not {shown[1]}; a resumed run "
+            f"keeps its settings (leave {flag.name} out, or start a new --out)"
         )
 
 
@@ -256,6 +250,7 @@ class Trainer:
         test split scored after training), then create the run folder: an error leaves nothing
         behind."""
         cfg = self.cfg
+        check_settings(asdict(cfg))  # SettingError naming the field (the CLI checked its flags)
         torch.manual_seed(cfg.seed)
         spec = registry.MODELS[cfg.model]
         if not spec.trainable:
