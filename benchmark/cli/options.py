@@ -11,7 +11,8 @@ import click
 from stillbox_gen.conventions import default_root
 
 from ..core import registry
-from ..core.config import FLAGGED, SettingError, check_settings, flag_of
+from ..core.config import FLAGGED, check_settings
+from ..core.errors import FieldError
 from ..core.registry import CLAMPED_RECIPE, DEPTH_RECIPE
 
 if TYPE_CHECKING:
@@ -50,7 +51,7 @@ def torch_device(name: str) -> torch.device:
     try:
         return resolve_device(name)
     except ValueError as e:
-        raise UserError(str(e)) from None
+        raise user_error(e) from None
 
 
 def is_default(name: str) -> bool:
@@ -128,9 +129,20 @@ def setting_options(command: str, order: tuple[str, ...] = ()):
     return decorate
 
 
-def flag_error(e: SettingError) -> UserError:
-    """A TrainConfig value's error in the command line's terms: its flag instead of its field."""
-    return UserError(f"{flag_of(e.field).name}: {e.requirement}, got {e.value}")
+def flag_name(field: str) -> str:
+    """The flag of a library field: a TrainConfig field's own (``depth_range``: ``--clamp``),
+    else ``--`` and the field's name with dashes (``fixed_shift``: ``--fixed-shift``)."""
+    if field in _FIELDS:
+        return _FIELDS[field].metadata["flag"].name
+    return "--" + field.replace("_", "-")
+
+
+def user_error(e: ValueError, **flags: str) -> UserError:
+    """A library error in the command line's terms: a FieldError names flags, not fields
+    (:func:`flag_name`, or ``flags[field]`` for a command whose flag is not named after it)."""
+    if not isinstance(e, FieldError):
+        return UserError(str(e))
+    return UserError(e.worded(lambda field: flags.get(field) or flag_name(field)))
 
 
 def training_settings(o: dict) -> dict:
@@ -140,8 +152,8 @@ def training_settings(o: dict) -> dict:
     given = {name: value for name, value in o.items() if name in _FIELDS}
     try:
         check_settings(given)
-    except SettingError as e:
-        raise flag_error(e) from None
+    except FieldError as e:
+        raise user_error(e) from None
     torch_device(given["device"])
     values = {}
     for name, value in given.items():
@@ -149,7 +161,7 @@ def training_settings(o: dict) -> dict:
         try:
             values[name] = parse(value) if parse is not None and value is not None else value
         except ValueError as e:
-            raise UserError(str(e)) from None
+            raise user_error(e) from None
     return values
 
 

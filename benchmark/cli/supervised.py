@@ -8,7 +8,7 @@ from pathlib import Path
 import click
 
 from ..core import registry
-from ..core.config import EVAL_BATCH_SIZE, SettingError, default
+from ..core.config import EVAL_BATCH_SIZE, default
 from ..core.models import count_parameters
 from ..core.runfolder import (
     COMPARISON,
@@ -25,13 +25,13 @@ from .options import (
     PREDICTIONS_OPTION,
     UserError,
     dataset_dir,
-    flag_error,
     int_option,
     is_default,
     model_names,
     setting_options,
     torch_device,
     training_settings,
+    user_error,
 )
 
 #: run's setting options in the --help order they have always had; a new TrainConfig setting
@@ -114,10 +114,8 @@ def _run_one(model: str, data: Path, out: Path, settings: dict) -> dict | None:
 
     try:
         return run_method(model, data, out, **settings)
-    except SettingError as e:
-        raise flag_error(e) from None
     except ValueError as e:
-        raise UserError(str(e)) from None
+        raise user_error(e) from None
 
 
 @click.command("eval")
@@ -156,9 +154,6 @@ def eval_cmd(
     if not ckpt.is_file():
         raise UserError(f"--ckpt: no such file '{ckpt}'")
     data = dataset_dir(data)
-    if batch_size < 1:
-        raise UserError(f"--batch-size: must be at least 1, got {batch_size}")
-    torch_device(device)
     out = out or ckpt.resolve().parent.parent / f"eval-{data.resolve().name}-{split}"
     if out.exists() and not out.is_dir():
         raise UserError(f"--out: '{out}' is a file")
@@ -167,7 +162,7 @@ def eval_cmd(
     try:  # checks the checkpoint and the data before anything is written to --out
         s = score_checkpoint(ckpt, data, split, out, device, batch_size, save_predictions)
     except ValueError as e:
-        raise UserError(str(e)) from None
+        raise user_error(e) from None
     m = s["metrics"]
     click.echo(
         f"{s['model']}: MAE {m['mae']:.3f} m, MRE {m['mre']:.3f}, MLE {m['mle']:.3f} on "
@@ -195,7 +190,7 @@ def report(runs: tuple[Path, ...], out: Path) -> None:
     try:
         click.echo(write_comparison(list(runs), out))
     except ValueError as e:  # an unreadable summary.json or pixels.npz, or an --out not made
-        raise UserError(str(e)) from None
+        raise user_error(e) from None
 
 
 @click.command()
@@ -417,7 +412,7 @@ def _train_speed(names, batches, data, baseline, compile_, time_res, device, thr
             given.get("repeats"),
         )
     except (ValueError, DataError) as e:
-        raise UserError(str(e)) from None
+        raise user_error(e) from None
     path = out / train_speed.train_csv_name(dev)
     speed_table.write_csv(rows, path)
     source = f"training pairs of {data}" if data is not None else "random inputs and targets"

@@ -9,8 +9,8 @@ import click
 
 from stillbox_gen.conventions import MAX_DEPTH
 
-from ..video.multishift import BETA_MAX, BETA_MEAN, BETA_MIN, EMA_LAMBDA, MULTISHIFT_MAX_SHIFT
-from .options import DEVICE_OPTION, UserError, dataset_dir, int_option, torch_device
+from ..video.multishift import BETA_MEAN, EMA_LAMBDA, MULTISHIFT_MAX_SHIFT
+from .options import DEVICE_OPTION, UserError, dataset_dir, int_option, torch_device, user_error
 
 BETA_MEAN_OPTION = click.option(
     "--beta-mean",
@@ -116,13 +116,13 @@ def infer(input_: Path, res: str | None, **o) -> None:
     try:
         job = prepare(opts)
     except ValueError as e:
-        raise UserError(str(e)) from None
+        raise user_error(e) from None
     if job.warning:
         click.echo(f"stillbox-bench: warning: {job.warning}", err=True)
     try:
         summary = run_inference(job, opts)
     except ValueError as e:
-        raise UserError(str(e)) from None
+        raise user_error(e) from None
     click.echo(describe(summary, opts.out))
 
 
@@ -180,12 +180,6 @@ def eval_multishift(
         counts = tuple(int(v) for v in shifts.split(","))
     except ValueError:
         raise UserError(f"--shifts: expected comma-separated integers, got '{shifts}'") from None
-    if max_shift < 1:
-        raise UserError(f"--max-shift: must be at least 1, got {max_shift}")
-    if not BETA_MIN < beta_mean < BETA_MAX:
-        raise UserError(f"--beta-mean: must be in ({BETA_MIN}, {BETA_MAX}), got {beta_mean}")
-    if scenes is not None and scenes < 1:
-        raise UserError(f"--scenes: must be at least 1, got {scenes}")
     if out.exists() and not out.is_dir():
         raise UserError(f"--out: '{out}' is a file")
     dev = torch_device(device)
@@ -194,7 +188,7 @@ def eval_multishift(
             list(ckpts), data, out, split, counts, max_shift, dev, beta_mean=beta_mean,
             limit=scenes, progress=not quiet,
         )  # fmt: skip
-    except ValueError as e:
-        raise UserError(str(e)) from None
+    except ValueError as e:  # the library's names for --shifts and --scenes
+        raise user_error(e, counts="--shifts", limit="--scenes") from None
     click.echo(md)
     click.echo(f"results in {out}")

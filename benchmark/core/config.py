@@ -21,6 +21,8 @@ from typing import Any
 
 from stillbox_gen.conventions import MAX_DEPTH, NOMINAL_SHIFT
 
+from .errors import FieldError
+
 EVAL_BATCH_SIZE = 64  # pairs per forward pass when scoring (results do not depend on it)
 #: the largest --seed: torch.manual_seed takes an unsigned 64-bit integer
 MAX_SEED = 2**64 - 1
@@ -35,8 +37,8 @@ class Flag:
     ``{clamped}`` stand for DepthNet's and the clamped DepthNet's values (the CLI fills them in).
     ``kind``: ``"int"``, ``"float"``, ``"text"``, ``"path"`` (a file), ``"flag"`` (on when given)
     or ``"switch"`` (``--x/--no-x``, None when neither is given); ``metavar``: click's.
-    ``parse``: the given value -> the field's (a ValueError of one line naming the flag when it
-    does not parse); ``rule``: (test, requirement): a given value must pass ``test``, else
+    ``parse``: the given value -> the field's (a FieldError when it does not parse);
+    ``rule``: (test, requirement): a given value must pass ``test``, else
     :func:`check_settings` refuses it with ``requirement`` (e.g. "must be at least 1").
     """
 
@@ -60,12 +62,14 @@ def setting(default, *, recipe: bool = False, flag: Flag | None = None):
 
 
 def parse_range(text: str) -> tuple[float, float]:
-    """--clamp "LO,HI" -> (LO, HI) metres (ValueError naming --clamp when not two numbers; the
-    range itself is checked by Trainer.setup, before the run folder exists)."""
+    """depth_range "LO,HI" -> (LO, HI) metres (FieldError when not two numbers; the range itself
+    is checked by Trainer.setup, before the run folder exists)."""
     try:
         lo, hi = (float(v) for v in text.split(","))
     except ValueError:
-        raise ValueError(f"--clamp: expected LO,HI in metres (e.g. 10,60), got '{text}'") from None
+        raise FieldError(
+            "depth_range", f"expected LO,HI in metres (e.g. 10,60), got '{text}'"
+        ) from None
     return (lo, hi)
 
 
@@ -320,22 +324,13 @@ def flag_of(name: str) -> Flag | None:
     return {f.name: f.metadata.get("flag") for f in fields(TrainConfig)}[name]
 
 
-class SettingError(ValueError):
-    """A TrainConfig value breaking its field's rule: ``field``, ``requirement`` and ``value``;
-    the message names the field (the command line names its flag instead)."""
-
-    def __init__(self, name: str, requirement: str, value) -> None:
-        super().__init__(f"{name}: {requirement}, got {value}")
-        self.field, self.requirement, self.value = name, requirement, value
-
-
 def check_settings(values: dict) -> None:
-    """SettingError for the first of ``values`` (TrainConfig field -> value; None: the default
+    """FieldError for the first of ``values`` (TrainConfig field -> value; None: the default
     applies) that breaks its field's rule, in TrainConfig's order."""
     for f in FLAGGED:
         flag, value = f.metadata["flag"], values.get(f.name)
         if value is not None and flag.rule is not None and not flag.rule[0](value):
-            raise SettingError(f.name, flag.rule[1], value)
+            raise FieldError(f.name, f"{flag.rule[1]}, got {value}")
 
 
 def default(name: str):

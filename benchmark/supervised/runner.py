@@ -25,6 +25,7 @@ from ..core.checkpoint import load_checkpoint, load_weights
 from ..core.config import EVAL_BATCH_SIZE, TrainConfig, default
 from ..core.data import FrameStore, PairDataset, Scene, load_scenes, read_depth
 from ..core.device import resolve_device
+from ..core.errors import FieldError
 from . import report
 from .evaluate import EvalResult, Method, evaluate
 from .train import Trainer, environment, resumed_settings
@@ -43,7 +44,7 @@ def eval_split(
     if not scenes and split == "test":
         split, scenes = "val", load_scenes(data, "val")
     if not scenes:
-        raise ValueError(f"--data: '{data}' has no scenes in split '{split}'")
+        raise FieldError("data", f"'{data}' has no scenes in split '{split}'")
     frames = min(s.frames for s in scenes)
     if shift >= frames:
         raise ValueError(
@@ -57,7 +58,7 @@ def median_depth(scenes: list[Scene], max_frames: int = MEDIAN_FRAMES) -> tuple[
     to ``max_frames`` frames spread evenly over ``scenes``; returns (metres, frames used)."""
     frames = [(s, f) for s in scenes for f in range(len(s.depth))]
     if not frames:
-        raise ValueError("--data: no training scenes to take the median depth from")
+        raise FieldError("data", "no training scenes to take the median depth from")
     pick = np.unique(np.linspace(0, len(frames) - 1, min(max_frames, len(frames))).astype(int))
     values = [np.clip(read_depth(frames[i][0].depth[frames[i][1]]), 0, MAX_DEPTH) for i in pick]
     return float(np.median(np.concatenate([v.reshape(-1) for v in values]))), len(pick)
@@ -93,7 +94,7 @@ def score_checkpoint(
     ``out`` is created. ``split_data``: :func:`eval_split`'s answer for this split at the
     checkpoint's shift, when already read."""
     if batch_size < 1:
-        raise ValueError(f"--batch-size: must be at least 1, got {batch_size}")
+        raise FieldError("batch_size", f"must be at least 1, got {batch_size}")
     dev = resolve_device(device)
     ck = load_checkpoint(ckpt, "--ckpt")
     name = ck["model_name"]

@@ -44,6 +44,7 @@ from ..core.data import (
     load_scenes,
 )
 from ..core.device import resolve_device
+from ..core.errors import FieldError, Ref
 from . import evaluate
 
 
@@ -200,18 +201,20 @@ def check_resumed_settings(cfg: TrainConfig, ck: dict, where: str) -> None:
         now = _plain(getattr(cfg, field))
         if now == then:
             continue
-        flag = flag_of(field)
-        if flag is None:
-            raise ValueError(
-                f"--resume {where}: trained with {field} {then}, this version's recipe has {now}"
+        if flag_of(field) is None:
+            raise FieldError(
+                "resume",
+                f"trained with {field} {then}, this version's recipe has {now}",
+                where=f" {where}",
             )
         shown = [
             ",".join(f"{v:g}" for v in x) if field == "depth_range" else x for x in (then, now)
         ]
-        raise ValueError(
-            f"{flag.name}: the run was trained with {shown[0]}, not {shown[1]}; a resumed run "
-            f"keeps its settings (leave {flag.name} out, or start a new --out)"
-        )
+        raise FieldError(
+            field,
+            f"the run was trained with {shown[0]}, not {shown[1]}; a resumed run keeps its "
+            "settings (leave ", Ref(field), " out, or start a new ", Ref("out"), ")",
+        )  # fmt: skip
 
 
 #: running sums of the open stage (steps since the last validation), kept in the checkpoint so
@@ -250,7 +253,7 @@ class Trainer:
         test split scored after training), then create the run folder: an error leaves nothing
         behind."""
         cfg = self.cfg
-        check_settings(asdict(cfg))  # SettingError naming the field (the CLI checked its flags)
+        check_settings(asdict(cfg))  # FieldError naming the field (the CLI checked its flags)
         torch.manual_seed(cfg.seed)
         spec = registry.MODELS[cfg.model]
         if not spec.trainable:
@@ -258,11 +261,13 @@ class Trainer:
         last = runfolder.checkpoint_path(self.run, "last")
         resume = load_checkpoint(last, "--resume") if cfg.resume else None
         if resume is not None and resume["model_name"] != cfg.model:
-            raise ValueError(
-                f"--resume {last}: a run of '{resume['model_name']}', not '{cfg.model}'"
+            raise FieldError(
+                "resume", f"a run of '{resume['model_name']}', not '{cfg.model}'", where=f" {last}"
             )
         if resume is not None and not all(k in resume for k in RESUME_KEYS):
-            raise ValueError(f"--resume {last}: holds no training state (not a 'last.pt')")
+            raise FieldError(
+                "resume", "holds no training state (not a 'last.pt')", where=f" {last}"
+            )
         if resume is not None:
             check_resumed_settings(cfg, resume, last)
         self.kind = spec.kind
@@ -304,16 +309,18 @@ class Trainer:
 
         lo, hi = cfg.depth_range
         if not 0 <= lo < hi <= MAX_DEPTH:
-            raise ValueError(
-                f"--clamp: must be LO,HI metres with 0 <= LO < HI <= {MAX_DEPTH:g}, "
-                f"got {lo:g},{hi:g}"
+            raise FieldError(
+                "depth_range",
+                f"must be LO,HI metres with 0 <= LO < HI <= {MAX_DEPTH:g}, got {lo:g},{hi:g}",
             )
         train_scenes = load_scenes(Path(cfg.data), "train")
         val_scenes = load_scenes(Path(cfg.data), "val")
         if not train_scenes or not val_scenes:
-            raise ValueError(
-                f"--data {cfg.data}: needs scenes in both train and val splits "
-                f"(has {len(train_scenes)} train, {len(val_scenes)} val)"
+            raise FieldError(
+                "data",
+                "needs scenes in both train and val splits "
+                f"(has {len(train_scenes)} train, {len(val_scenes)} val)",
+                where=f" {cfg.data}",
             )
         t0 = time.perf_counter()
         show = cfg.progress and self.is_main_process
@@ -323,9 +330,9 @@ class Trainer:
         self._check_frame_size(cfg.data)
         frames = min(s.frames for s in val_scenes)
         if not 1 <= cfg.shift < frames:
-            raise ValueError(
-                f"--shift: must be at least 1 and below the {frames} frames of a scene, "
-                f"got {cfg.shift}"
+            raise FieldError(
+                "shift",
+                f"must be at least 1 and below the {frames} frames of a scene, got {cfg.shift}",
             )
         self.camera = camera_of(Path(cfg.data))
         # depth targets are expressed for the nominal shift of the training set's displacement
@@ -350,9 +357,10 @@ class Trainer:
         )
         self.steps_per_epoch = len(self.train_set) // self.world // self.per_rank_batch
         if self.steps_per_epoch == 0:
-            raise ValueError(
-                f"--batch-size {cfg.batch_size}: larger than the "
-                f"{len(self.train_set)} training samples"
+            raise FieldError(
+                "batch_size",
+                f"larger than the {len(self.train_set)} training samples",
+                where=f" {cfg.batch_size}",
             )
         if check is not None and self.is_main_process:
             check()
@@ -362,15 +370,16 @@ class Trainer:
             self.log(f"resumed from {last} at step {self.state['global_step']}")
 
     def _check_frame_size(self, data: str) -> None:
-        """ValueError naming --data unless the frames (train and val) fit the network: height
-        and width multiples of its ``min_multiple`` pixels (64 for six stride-2 stages)."""
+        """FieldError on ``data`` unless the frames (train and val) fit the network: height and
+        width multiples of its ``min_multiple`` pixels (64 for six stride-2 stages)."""
         multiple = getattr(self.model, "min_multiple", 1)
         for store in (self.train_store, self.val_store):
             if store.height % multiple or store.width % multiple:
-                raise ValueError(
-                    f"--data {data}: frames of {store.width}x{store.height} px; "
-                    f"'{self.cfg.model}' needs sizes that are multiples of {multiple} px "
-                    f"(e.g. stillbox-gen --res {multiple})"
+                raise FieldError(
+                    "data",
+                    f"frames of {store.width}x{store.height} px; '{self.cfg.model}' needs sizes "
+                    f"that are multiples of {multiple} px (e.g. stillbox-gen --res {multiple})",
+                    where=f" {data}",
                 )
 
     def _load_training_state(self, ck: dict, path: Path) -> None:
@@ -381,9 +390,10 @@ class Trainer:
             self.sched.load_state_dict(ck["scheduler"])
             self.state.update(ck["state"])
         except (KeyError, ValueError, TypeError) as e:
-            raise ValueError(
-                f"--resume {path}: its training state does not fit this run ({first_line(e)})"
-            ) from None
+            raise FieldError(
+                "resume", f"its training state does not fit this run ({first_line(e)})",
+                where=f" {path}",
+            ) from None  # fmt: skip
 
     def _start_run_folder(self) -> None:
         """Create the run folder (runfolder.start_logs), write config.json and environment.json,

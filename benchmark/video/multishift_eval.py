@@ -36,9 +36,12 @@ from tqdm import tqdm
 from stillbox_gen.dataset import Dataset, Scene
 
 from ..core import metrics, runfolder
+from ..core.errors import FieldError, Ref
 from .infer import frame_depth, network_outputs
 from .multishift import (
+    BETA_MAX,
     BETA_MEAN,
+    BETA_MIN,
     EMA_LAMBDA,
     MAX_SHIFTS,
     MULTISHIFT_MAX_SHIFT,
@@ -69,23 +72,34 @@ def strategies(counts: tuple[int, ...]) -> list[Strategy]:
     """The nominal shift, then n = each of ``counts`` (1..MAX_SHIFTS)."""
     bad = [n for n in counts if not 1 <= n <= MAX_SHIFTS]
     if bad or not counts:
-        raise ValueError(f"--shifts: each n must be in 1..{MAX_SHIFTS}, got {counts}")
+        raise FieldError("counts", f"each n must be in 1..{MAX_SHIFTS}, got {counts}")
     return [Strategy(0), *(Strategy(n) for n in sorted(set(counts)))]
 
 
+def check_arguments(max_shift: int, beta_mean: float, limit: int | None) -> None:
+    """FieldError unless ``max_shift`` >= 1 (frames), BETA_MIN < ``beta_mean`` < BETA_MAX and
+    ``limit`` (sequences) is None or >= 1."""
+    if max_shift < 1:
+        raise FieldError("max_shift", f"must be at least 1, got {max_shift}")
+    if not BETA_MIN < beta_mean < BETA_MAX:
+        raise FieldError("beta_mean", f"must be in ({BETA_MIN}, {BETA_MAX}), got {beta_mean}")
+    if limit is not None and limit < 1:
+        raise FieldError("limit", f"must be at least 1, got {limit}")
+
+
 def sequences(data: Path, split: str, max_shift: int, limit: int | None) -> list[Scene]:
-    """The split's scenes (first ``limit``); ValueError naming --data when they are too short
-    for ``max_shift`` (the first scored frame) or absent."""
+    """The split's scenes (first ``limit``); FieldError on ``data`` when they are too short for
+    ``max_shift`` (the first scored frame) or absent."""
     ds = Dataset(data)
     scenes = ds.scenes(split, limit)
     if not scenes:
-        raise ValueError(f"--data {data}: no scene in the {split} split")
+        raise FieldError("data", f"no scene in the {split} split", where=f" {data}")
     frames = min(s.frames for s in scenes)
     if frames <= max_shift:
-        raise ValueError(
-            f"--data {data}: scenes of {frames} frames; --max-shift {max_shift} needs more "
-            f"(generate them with stillbox-gen --frames 30)"
-        )
+        raise FieldError(
+            "data", f"scenes of {frames} frames; ", Ref("max_shift"), f" {max_shift} needs more "
+            "(generate them with stillbox-gen --frames 30)", where=f" {data}",
+        )  # fmt: skip
     return scenes
 
 
@@ -163,8 +177,10 @@ def evaluate_multishift(
     limit: int | None = None,
     progress: bool = True,
 ) -> list[dict]:
-    """Rows of scores, one per (checkpoint, strategy); see the module doc. Every checkpoint is
-    loaded and checked before any frame is read (ValueError naming --ckpt or --data)."""
+    """Rows of scores, one per (checkpoint, strategy); see the module doc. The arguments are
+    checked and every checkpoint loaded before any frame is read (a one-line ValueError;
+    FieldError naming the argument)."""
+    check_arguments(max_shift, beta_mean, limit)
     plan = strategies(counts)
     nets = []
     for ckpt in checkpoints:
