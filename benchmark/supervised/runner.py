@@ -96,10 +96,10 @@ def score_checkpoint(
     if batch_size < 1:
         raise FieldError("batch_size", f"must be at least 1, got {batch_size}")
     dev = resolve_device(device)
-    ck = load_checkpoint(ckpt, "--ckpt")
+    ck = load_checkpoint(ckpt, "ckpt")
     name = ck["model_name"]
     model = registry.build_model(name)
-    load_weights(model, ck, f"--ckpt {ckpt}", name)
+    load_weights(model, ck, "ckpt", ckpt, name)
     model.to(dev)
     shift = ck.get("shift", NOMINAL_SHIFT)
     if split_data is None or split_data[2].shift != shift:
@@ -220,7 +220,7 @@ def train_config(model: str, data: Path, out: Path, **overrides) -> TrainConfig:
     recipe = dataclasses.asdict(registry.MODELS[model].recipe)
     cfg = TrainConfig(model=model, data=str(data), out=str(out), **recipe)
     if overrides.get("resume"):
-        last = load_checkpoint(runfolder.checkpoint_path(out, "last"), "--resume")
+        last = load_checkpoint(runfolder.checkpoint_path(out, "last"), "resume")
         cfg = dataclasses.replace(cfg, **resumed_settings(last))
     return dataclasses.replace(cfg, **{k: v for k, v in overrides.items() if v is not None})
 

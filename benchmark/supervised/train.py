@@ -259,7 +259,7 @@ class Trainer:
         if not spec.trainable:
             raise ValueError(f"{cfg.model}: has no network to train")
         last = runfolder.checkpoint_path(self.run, "last")
-        resume = load_checkpoint(last, "--resume") if cfg.resume else None
+        resume = load_checkpoint(last, "resume") if cfg.resume else None
         if resume is not None and resume["model_name"] != cfg.model:
             raise FieldError(
                 "resume", f"a run of '{resume['model_name']}', not '{cfg.model}'", where=f" {last}"
@@ -274,10 +274,8 @@ class Trainer:
         self.model = spec.build().to(self.device)
         self.nominal_displacement = None
         if cfg.pretrained and resume is None:  # resuming: the checkpoint's weights
-            where = f"--pretrained {cfg.pretrained}"
-            load_weights(
-                self.model, load_checkpoint(cfg.pretrained, "--pretrained"), where, cfg.model
-            )
+            ck = load_checkpoint(cfg.pretrained, "pretrained")
+            load_weights(self.model, ck, "pretrained", cfg.pretrained, cfg.model)
             self.log(f"initialised from {cfg.pretrained}")
         cuda = self.device.type == "cuda"
         if cfg.channels_last:
@@ -384,7 +382,7 @@ class Trainer:
 
     def _load_training_state(self, ck: dict, path: Path) -> None:
         """Weights, optimiser, scheduler and counters (with the open stage's running sums)."""
-        load_weights(self.model, ck, f"--resume {path}", self.cfg.model)
+        load_weights(self.model, ck, "resume", path, self.cfg.model)
         try:
             self.opt.load_state_dict(ck["optimizer"])
             self.sched.load_state_dict(ck["scheduler"])

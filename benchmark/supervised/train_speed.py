@@ -25,6 +25,7 @@ import torch
 from ..core import registry
 from ..core.config import TrainConfig
 from ..core.data import EpochSampler, FrameStore, PairDataset, load_scenes
+from ..core.errors import FieldError
 from ..core.registry import Target
 from .speed import TRAIN_BATCHES, _sync, csv_name
 from .train import TrainStep, make_optimizer
@@ -99,7 +100,7 @@ def _pairs(data: Path, target: Target, needed: int, seed: int) -> PairDataset:
         scenes.append(s)
         frames += len(s.rgb)
     if not scenes:
-        raise ValueError(f"--data {data}: has no train scenes")
+        raise FieldError("data", "has no train scenes", where=f" {data}")
     return PairDataset(FrameStore(scenes, progress=False), "train", seed=seed, target=target.value)
 
 

@@ -217,7 +217,7 @@ def prepare(o: InferOptions) -> Job:
         camera = {"width": o.res[0], "height": o.res[1], "fov_deg": o.train_fov}
     if not o.ckpt.is_file():
         raise FieldError("ckpt", f"no such file '{o.ckpt}'")
-    model, scale, info = depth_network(o.ckpt, "--ckpt", camera)
+    model, scale, info = depth_network(o.ckpt, "ckpt", camera)
     source = footage.FrameSource(o.input)
     _check_fixed_shift(o, source.count)
     positions, fps = _motion(o, source)

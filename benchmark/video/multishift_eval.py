@@ -184,15 +184,17 @@ def evaluate_multishift(
     plan = strategies(counts)
     nets = []
     for ckpt in checkpoints:
-        model, scale, info = depth_network(ckpt, "--ckpt")
+        model, scale, info = depth_network(ckpt, "ckpt")
         nets.append((ckpt, (model.to(device), info["clamp"], device), scale, info))
     scenes = sequences(data, split, max_shift, limit)
     size = scenes[0].load_rgb(0).shape[:2]
     for ckpt, _, _, info in nets:
         if (info["height"], info["width"]) != size:
-            raise ValueError(
-                f"--ckpt {ckpt}: trained on {info['width']}x{info['height']} frames, the "
-                f"sequences are {size[1]}x{size[0]}"
+            raise FieldError(
+                "ckpt",
+                f"trained on {info['width']}x{info['height']} frames, the sequences are "
+                f"{size[1]}x{size[0]}",
+                where=f" {ckpt}",
             )
     tallies = {(i, s.n): Tally() for i in range(len(nets)) for s in plan}
     for scene in tqdm(scenes, desc="sequences", unit="scene", disable=not progress):

@@ -10,12 +10,13 @@ import torch
 from stillbox_gen.conventions import MAX_DEPTH
 
 from ..core import registry
-from ..core.checkpoint import load_checkpoint, load_weights
+from ..core.checkpoint import load_checkpoint, load_weights, source_error
 from ..core.data import DataError, camera_of
+from ..core.errors import Ref
 from .multishift import DepthScale
 
 
-def _training_camera(ck: dict, where: str) -> dict:
+def _training_camera(ck: dict, field: str | None, path: str | Path) -> dict:
     """The training camera ``{"width", "height", "fov_deg"}`` (pixels, pixels, horizontal
     degrees): the checkpoint's ``camera`` entry, else its training dataset's (data.camera_of)."""
     cam = ck.get("camera")
@@ -24,15 +25,16 @@ def _training_camera(ck: dict, where: str) -> dict:
         try:
             return camera_of(str(data))
         except (DataError, KeyError, TypeError):
-            raise ValueError(
-                f"{where}: no training camera (the checkpoint has none and its dataset "
-                f"'{data}' is not readable); give --train-fov DEG and --res WxH"
-            ) from None
+            raise source_error(
+                field, path,
+                f"no training camera (the checkpoint has none and its dataset '{data}' is not "
+                "readable); give ", Ref("train_fov"), " DEG and ", Ref("res"), " WxH",
+            ) from None  # fmt: skip
     return {"width": cam["width"], "height": cam["height"], "fov_deg": float(cam["fov_deg"])}
 
 
 def depth_network(
-    path: str | Path, flag: str = "--ckpt", camera: dict | None = None
+    path: str | Path, field: str | None = "ckpt", camera: dict | None = None
 ) -> tuple[torch.nn.Module, DepthScale, dict]:
     """A depth network ready for inference: ``(model, scale, info)``.
 
@@ -45,21 +47,22 @@ def depth_network(
     ``depth_range`` [lo, hi] (m), ``clamp`` (the range outputs must be clamped to, None unless
     narrower than [0, MAX_DEPTH]: registry.output_clamp) and ``model_name``. A checkpoint of a
     method that does not output depth (flow networks) is refused: ValueError of one line naming
-    ``flag`` and the file.
+    the file and the ``field`` it was given as (checkpoint.source_error).
     """
-    where = f"{flag} {path}"
-    ck = load_checkpoint(path, flag)
+    ck = load_checkpoint(path, field)
     name = ck["model_name"]
     kind = registry.MODELS[name].kind
     if kind.scored_as is not registry.Scoring.DEPTH:
-        raise ValueError(
-            f"{where}: '{name}' predicts {kind.name}, not depth; give a depth network's checkpoint"
+        raise source_error(
+            field,
+            path,
+            f"'{name}' predicts {kind.name}, not depth; give a depth network's checkpoint",
         )
     model = registry.build_model(name)
-    load_weights(model, ck, where, name)
+    load_weights(model, ck, field, path, name)
     model.eval()
     lo, hi = (float(v) for v in ck.get("depth_range", (0.0, MAX_DEPTH)))  # load_checkpoint
     d0 = float(ck["nominal_displacement"])  # checked them (check_metadata)
-    info = camera if camera is not None else _training_camera(ck, where)
+    info = camera if camera is not None else _training_camera(ck, field, path)
     info = {**info, "depth_range": [lo, hi], "clamp": registry.output_clamp((lo, hi))}
     return model, DepthScale(theta_max=hi, d0=d0), {**info, "model_name": name}
