@@ -21,7 +21,7 @@ from stillbox_gen.conventions import MAX_DEPTH, NOMINAL_SHIFT
 from stillbox_gen.lock import folder_lock
 
 from ..core import registry, runfolder
-from ..core.checkpoint import load_checkpoint, load_weights
+from ..core.checkpoint import load_checkpoint, load_weights, source_error
 from ..core.config import EVAL_BATCH_SIZE, TrainConfig, default
 from ..core.data import FrameStore, PairDataset, Scene, load_scenes, read_depth
 from ..core.device import resolve_device
@@ -35,11 +35,11 @@ ORACLE_FLOW_NOISE_PX = 0.05  # oracle-flow is also scored with this much flow no
 
 
 def eval_split(
-    data: Path, split: str, shift: int, progress: bool, shift_source: str = "--shift"
+    data: Path, split: str, shift: int, progress: bool, ckpt: Path | None = None
 ) -> tuple[str, list, PairDataset]:
     """(split actually used, its scenes, eval-mode PairDataset); test falls back to val. A
-    ``shift`` (frames) not below the scenes' frame count is a ValueError naming
-    ``shift_source``, raised before any frame is read."""
+    ``shift`` (frames) not below the scenes' frame count is a FieldError on ``shift`` (on
+    ``ckpt`` when the shift is that checkpoint's), raised before any frame is read."""
     scenes = load_scenes(data, split)
     if not scenes and split == "test":
         split, scenes = "val", load_scenes(data, "val")
@@ -47,9 +47,10 @@ def eval_split(
         raise FieldError("data", f"'{data}' has no scenes in split '{split}'")
     frames = min(s.frames for s in scenes)
     if shift >= frames:
-        raise ValueError(
-            f"{shift_source} {shift} is not below the {frames} frames of the scenes of '{data}'"
-        )
+        text = f"{shift} is not below the {frames} frames of the scenes of '{data}'"
+        if ckpt is not None:
+            raise source_error("ckpt", ckpt, f"its 'shift' {text}")
+        raise FieldError("shift", text)
     return split, scenes, PairDataset(FrameStore(scenes, progress=progress), "eval", shift)
 
 
@@ -103,7 +104,7 @@ def score_checkpoint(
     model.to(dev)
     shift = ck.get("shift", NOMINAL_SHIFT)
     if split_data is None or split_data[2].shift != shift:
-        split_data = eval_split(data, split, shift, progress, f"--ckpt {ckpt}: its 'shift'")
+        split_data = eval_split(data, split, shift, progress, ckpt)
     split, scenes, dataset = split_data
     depth_range = ck.get("depth_range", [0.0, MAX_DEPTH])
     clamp = registry.output_clamp(depth_range)
