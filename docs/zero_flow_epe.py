@@ -14,8 +14,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from benchmark.data import load_scenes
-from benchmark.flow import endpoint_error, flow_from_depth
+from benchmark.core.data import load_scenes
+from benchmark.core.flow import endpoint_error, flow_from_depth
 from stillbox_gen.conventions import NOMINAL_SHIFT
 
 

@@ -37,7 +37,7 @@ from pathlib import Path
 
 import torch
 
-from benchmark import registry
+from benchmark.core import registry
 
 FIXTURE = Path(__file__).parent / "fixtures" / "models.json"
 INPUT_SHAPE = (2, 6, 64, 128)

@@ -17,8 +17,9 @@ import numpy as np
 import pytest
 from conftest import CliResult, invoke_main
 
-from benchmark import cli, runfolder
-from benchmark.data import FrameStore, PairDataset, load_scenes
+from benchmark import cli
+from benchmark.core import runfolder
+from benchmark.core.data import FrameStore, PairDataset, load_scenes
 
 BENCH = [sys.executable, "-m", "benchmark.cli"]
 
@@ -98,7 +99,7 @@ def test_eval_pairs_are_fixed_forward_pairs(tiny_dataset):
 def test_bad_file_is_named(tiny_dataset, tmp_path):
     import shutil
 
-    from benchmark.data import DataError
+    from benchmark.core.data import DataError
 
     broken = tmp_path / "broken"
     shutil.copytree(tiny_dataset, broken)
@@ -231,7 +232,8 @@ def test_run_depthnet_typed_alone_reads_the_default_dataset(tmp_path, monkeypatc
     starts on it with the registry's recipe (the training itself is replaced by a stub)."""
     from click.testing import CliRunner
 
-    from benchmark import cli, runner
+    from benchmark import cli
+    from benchmark.supervised import runner
 
     monkeypatch.chdir(tmp_path)
     result = CliRunner().invoke(cli.cli, ["run", "depthnet"])
@@ -274,7 +276,7 @@ def test_flow_targets_follow_depth_translation_and_flips(store):
     """Training flow targets = exact flow of frame i2 towards frame i1, flipped consistently."""
     import torch
 
-    from benchmark.flow import flow_from_depth
+    from benchmark.core.flow import flow_from_depth
 
     ds = PairDataset(store, "train", shift=3, seed=0, target="flow")
     seen = set()
@@ -359,8 +361,8 @@ def test_oracle_flow_returns_ground_truth_and_constant_is_the_median(tiny_datase
 @pytest.mark.parametrize("model", ["oracle-flow", "constant"])
 def test_every_file_of_a_scored_run_is_written_once(tiny_dataset, tmp_path, monkeypatch, model):
     """One writer of the run folder: each report file is written once, atomically, by
-    benchmark.runfolder (summary.json used to be written again to add entries)."""
-    from benchmark import runner
+    benchmark.core.runfolder (summary.json used to be written again to add entries)."""
+    from benchmark.supervised import runner
 
     written = []
 
@@ -431,3 +433,41 @@ def test_bad_flow_benchmark_input_is_a_one_line_error(args, words):
     lines = proc.stderr.strip().splitlines()
     assert proc.returncode == 2 and len(lines) == 1, proc.stderr
     assert all(w in lines[0] for w in words), lines[0]
+
+
+def test_every_flagged_setting_is_an_option_of_its_commands():
+    """TrainConfig's fields carry their flags: 'run' and 'compare' offer exactly the fields whose
+    Flag has a help text for them, each under its field's name, so that a new knob is one field
+    of TrainConfig; the training config copies what they give."""
+    from benchmark.cli import supervised
+    from benchmark.cli.options import training_settings
+    from benchmark.core.config import FLAGGED
+
+    for command in ("run", "compare"):
+        params = {p.name: p for p in getattr(supervised, command).params}
+        for f in FLAGGED:
+            flag = f.metadata["flag"]
+            offered = command in flag.help
+            assert (f.name in params) == offered, (command, f.name)
+            if offered:
+                assert flag.name in params[f.name].opts, (command, f.name)
+    given = {f.name: None for f in FLAGGED} | {"device": "cpu", "depth_range": "10,60"}
+    settings = training_settings(given | {"progress": True, "pretrained": Path("p.pt")})
+    assert settings["depth_range"] == (10.0, 60.0) and settings["progress"] is False
+    assert settings["pretrained"] == "p.pt" and settings["epochs"] is None
+
+
+def test_settings_are_checked_by_field_and_named_by_flag():
+    """One rule per TrainConfig field: the library names the field, the command line the flag."""
+    from benchmark.cli.options import UserError, training_settings
+    from benchmark.core.config import check_settings
+    from benchmark.core.errors import FieldError
+
+    with pytest.raises(FieldError, match=r"^log_every: must be at least 1, got 0$") as e:
+        check_settings({"epochs": 3, "log_every": 0})
+    assert e.value.field == "log_every"
+    check_settings({"epochs": None, "seed": 2**64 - 1})  # None: the default applies
+    with pytest.raises(UserError, match=r"^--log-every: must be at least 1, got 0$"):
+        training_settings({"log_every": 0, "device": "cpu"})
+    with pytest.raises(UserError, match=r"^--clamp: expected LO,HI in metres"):
+        training_settings({"depth_range": "10", "device": "cpu"})

@@ -20,10 +20,11 @@ import torch
 from conftest import TINY_SHARES, CliResult, run_cli
 from test_bench import bench
 
-from benchmark import registry, runfolder, train
-from benchmark.config import TrainConfig
-from benchmark.data import load_scenes
-from benchmark.runner import train_config
+from benchmark.core import registry, runfolder
+from benchmark.core.config import TrainConfig
+from benchmark.core.data import load_scenes
+from benchmark.supervised import train
+from benchmark.supervised.runner import train_config
 from stillbox_gen.manifest import split_of
 
 

@@ -9,9 +9,10 @@ import pytest
 import torch
 from test_bench import bench
 
-from benchmark import evaluate, registry
-from benchmark.data import STILL_TARGET, FrameStore, PairDataset, load_scenes
-from benchmark.models import DepthNet, count_parameters
+from benchmark.core import registry
+from benchmark.core.data import STILL_TARGET, FrameStore, PairDataset, load_scenes
+from benchmark.core.models import DepthNet, count_parameters
+from benchmark.supervised import evaluate
 from stillbox_gen.conventions import MAX_DEPTH, NOMINAL_SHIFT
 
 
@@ -67,8 +68,8 @@ def test_scoring_clamps_the_network_output_before_the_displacement_scale():
     }
     dev = torch.device("cpu")
     with torch.no_grad():
-        raw = evaluate.predict(evaluate.Method("depth", model, 0.5), batch, dev)["depth_q"]
-        clamped = evaluate.Method("depth", model, 0.5, depth_range=(10, 60))
+        raw = evaluate.predict(evaluate.Method(registry.DEPTH, model, 0.5), batch, dev)["depth_q"]
+        clamped = evaluate.Method(registry.DEPTH, model, 0.5, depth_range=(10, 60))
         out = evaluate.predict(clamped, batch, dev)
     assert float(raw.min()) > 60
     q = out["depth_q"]

@@ -385,7 +385,8 @@ def test_flags_with_several_fields_set_them_all_and_name_them_in_errors():
 def test_resolution_parser_and_out_folder_check_are_shared_by_both_clis(tmp_path):
     """arguments.parse_resolution is --res of stillbox-gen and of stillbox-bench infer (whose
     multiple-of-64 rule is checked on top); check_out_folder raises each CLI's own error."""
-    from benchmark import cli as bench_cli
+    from benchmark.cli import options as bench_options
+    from benchmark.cli import video as bench_video
     from stillbox_gen import arguments
 
     assert arguments.parse_resolution("64") == (64, 64)
@@ -393,12 +394,12 @@ def test_resolution_parser_and_out_folder_check_are_shared_by_both_clis(tmp_path
     for bad, words in (("64x", "expected N or WxH"), ("0x64", "width and height must be positive")):
         with pytest.raises(ConfigError, match=f"^--res: {words}"):
             arguments.parse_resolution(bad)
-        with pytest.raises(bench_cli.UserError, match=f"^--res: {words}"):
-            bench_cli._size_option(bad)
+        with pytest.raises(bench_options.UserError, match=f"^--res: {words}"):
+            bench_video._size_option(bad)
     file = tmp_path / "f"
     file.write_text("")
     arguments.check_out_folder(tmp_path)  # a folder, or a missing path, is fine
     arguments.check_out_folder(tmp_path / "new")
-    for error in (ConfigError, bench_cli.UserError):
+    for error in (ConfigError, bench_options.UserError):
         with pytest.raises(error, match=f"^--out: '{file}' is a file, not a folder$"):
             arguments.check_out_folder(file, error=error)

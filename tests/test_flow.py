@@ -1,4 +1,5 @@
-"""benchmark.flow: exact flow from depth and translation, depth back from flow (REFERENCE §7)."""
+"""benchmark.core.flow: exact flow from depth and translation, depth back from flow
+(REFERENCE §7)."""
 
 from __future__ import annotations
 
@@ -6,9 +7,9 @@ import numpy as np
 import pytest
 import torch
 
-from benchmark.data import FrameStore, load_scenes
-from benchmark.flow import depth_from_flow, endpoint_error, flow_from_depth, warp
-from benchmark.geometry import distance_to_foe, focus_of_expansion
+from benchmark.core.data import FrameStore, load_scenes
+from benchmark.core.flow import depth_from_flow, endpoint_error, flow_from_depth, warp
+from benchmark.core.geometry import distance_to_foe, focus_of_expansion
 
 H, W = 48, 64
 

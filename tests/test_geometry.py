@@ -1,11 +1,11 @@
-"""benchmark.geometry: focus of expansion of a translating pinhole camera (OpenCV axes)."""
+"""benchmark.core.geometry: focus of expansion of a translating pinhole camera (OpenCV axes)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from benchmark.geometry import distance_to_foe, focus_of_expansion
+from benchmark.core.geometry import distance_to_foe, focus_of_expansion
 
 
 def intrinsics(f: float = 32.0, cx: float = 31.5, cy: float = 31.5) -> np.ndarray:

@@ -23,7 +23,7 @@ import pytest
 import torch
 from conftest import run_cli
 
-from benchmark import metrics
+from benchmark.core import metrics
 from stillbox_gen import bench, formats, layout
 
 GOLDEN = Path(__file__).parent / "golden"

@@ -123,14 +123,48 @@ def test_the_graph_sees_the_known_edges():
     assert "stillbox_gen.writer" in graph["stillbox_gen.generate"]
     assert "stillbox_gen.workers" in graph["stillbox_gen.ray_pool"]
     assert "stillbox_gen.blender.render" in graph["stillbox_gen.workers"]  # in a function
-    assert "stillbox_gen.dataset" in graph["benchmark.data"]
-    assert "benchmark.models" in graph["benchmark.cli"]
+    assert "stillbox_gen.dataset" in graph["benchmark.core.data"]
+    assert "benchmark.core.models" in graph["benchmark.cli.supervised"]
+    assert "benchmark.cli.supervised" in graph["benchmark.cli"]
 
 
 def test_no_import_cycles():
     """Every module can be read, and imported, without the ones that import it."""
     cycle = find_cycle(import_graph())
     assert cycle is None, "import cycle: " + " -> ".join(cycle or [])
+
+
+#: benchmark's groups of modules (README code map): each may import benchmark.core, never the
+#: other way round
+BENCHMARK_GROUPS = ("supervised", "unsupervised", "video", "cli")
+
+
+def test_benchmark_core_imports_none_of_the_other_groups():
+    """benchmark.core is what every chapter uses: it imports no chapter's group nor the CLI."""
+    graph = import_graph()
+    core = [m for m in graph if m == "benchmark.core" or m.startswith("benchmark.core.")]
+    assert "benchmark.core.data" in core
+    others = tuple(f"benchmark.{group}" for group in BENCHMARK_GROUPS)
+    offenders = [
+        f"{m} imports {i}"
+        for m in core
+        for i in sorted(graph[m])
+        if i in others or i.startswith(tuple(f"{o}." for o in others))
+    ]
+    assert not offenders, offenders
+
+
+def test_only_the_cli_imports_the_cli():
+    """The command line sits on top: no library module imports benchmark.cli."""
+    graph = import_graph()
+    offenders = [
+        f"{m} imports {i}"
+        for m in graph
+        if not m.startswith("benchmark.cli")
+        for i in graph[m]
+        if i.startswith("benchmark.cli")
+    ]
+    assert not offenders, offenders
 
 
 def test_only_the_blender_package_imports_bpy():
@@ -187,6 +221,12 @@ BENCHMARK_MUST_NOT_LOAD = (
     "stillbox_gen.photos",
     "stillbox_gen.blender",
 )
+# The closed-loop flight samples its own scenes, so it may also load the generator's config and
+# scene sampling (as `stillbox-bench fly` needs the `gen` extra); never the writer or Blender.
+FLIGHT = "benchmark.flight"
+FLIGHT_MAY_ALSO_LOAD = frozenset(
+    {"stillbox_gen.config", "stillbox_gen.scene", "stillbox_gen.shapes", "stillbox_gen.photos"}
+)
 
 
 def reachable(graph: dict[str, set[str]], starts: set[str]) -> set[str]:
@@ -201,9 +241,15 @@ def reachable(graph: dict[str, set[str]], starts: set[str]) -> set[str]:
     return seen
 
 
-def _generator_modules_of_benchmark(graph: dict[str, set[str]]) -> set[str]:
-    """The stillbox_gen modules that benchmark modules import, directly or not."""
-    starts = {n for n in graph if n.split(".")[0] == "benchmark"}
+def _benchmark_modules(names, flight: bool = False) -> set[str]:
+    """The benchmark's modules among ``names``: those of the flight package, or all others."""
+    return {n for n in names if n.split(".")[0] == "benchmark" and n.startswith(FLIGHT) == flight}
+
+
+def _generator_modules_of_benchmark(graph: dict[str, set[str]], flight: bool = False) -> set[str]:
+    """The stillbox_gen modules that benchmark modules (of flight, or all others) import,
+    directly or not."""
+    starts = _benchmark_modules(graph, flight)
     return {n for n in reachable(graph, starts) if n.split(".")[0] == "stillbox_gen"}
 
 
@@ -225,10 +271,18 @@ def test_benchmark_imports_only_the_data_contract():
     assert not any(m.startswith(BENCHMARK_MUST_NOT_LOAD) for m in loaded)
 
 
+def test_flight_loads_the_scene_sampling_but_never_the_writer_or_blender():
+    loaded = _generator_modules_of_benchmark(import_graph(), flight=True)
+    assert "stillbox_gen.scene" in loaded  # the walk sees the sampling
+    assert loaded <= BENCHMARK_MAY_LOAD | FLIGHT_MAY_ALSO_LOAD, sorted(loaded)
+    for forbidden in ("stillbox_gen.writer", "stillbox_gen.generate", "stillbox_gen.blender"):
+        assert not any(m.startswith(forbidden) for m in loaded)
+
+
 def test_importing_the_benchmark_loads_only_the_data_contract():
     """The same at run time: importing every benchmark module loads no other stillbox_gen
     module, and neither bpy."""
-    names = [n for n in _modules() if n.split(".")[0] == "benchmark"]
+    names = sorted(_benchmark_modules(_modules()))
     code = (
         f"import importlib, sys\nfor n in {names!r}:\n    importlib.import_module(n)\n"
         "print(sorted(m for m in sys.modules if m.split('.')[0] in ('stillbox_gen', 'bpy')))"
@@ -240,3 +294,19 @@ def test_importing_the_benchmark_loads_only_the_data_contract():
     loaded = set(ast.literal_eval(proc.stdout))
     assert "stillbox_gen.dataset" in loaded
     assert loaded <= BENCHMARK_MAY_LOAD, sorted(loaded - BENCHMARK_MAY_LOAD)
+
+
+def test_every_package_is_installed():
+    """pyproject.toml's [tool.setuptools] packages name every folder of modules (a sub-package
+    left out would be missing from an installed stillbox-bench)."""
+    import tomllib
+
+    listed = set(
+        tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"]
+    )
+    found = {
+        ".".join(init.parent.relative_to(ROOT).parts)
+        for package in PACKAGES
+        for init in (ROOT / package).rglob("__init__.py")
+    }
+    assert found <= listed, sorted(found - listed)

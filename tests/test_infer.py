@@ -19,16 +19,17 @@ import pytest
 import torch
 from conftest import invoke_main
 
-from benchmark import cli, registry
-from benchmark.checkpoint import depth_network
-from benchmark.multishift import displacements
-from benchmark.video import (
+from benchmark import cli
+from benchmark.core import registry
+from benchmark.video.footage import (
     Crop,
     constant_speed_positions,
     crop_box,
     focal_px,
     read_poses,
 )
+from benchmark.video.multishift import displacements
+from benchmark.video.network import depth_network
 
 FRAMES, SIZE, FPS = 8, 64, 10.0
 
@@ -379,9 +380,9 @@ def test_rendered_scene_as_mp4_and_as_frames(tiny_dataset, files, tmp_path):
     """A generated scene written to an MP4 (cv2.VideoWriter) runs end to end; its lossless frames
     with --fixed-shift 3 at 0.1 m per frame give the depth `eval` computes for the pairs
     (t − 3, t) (the same network, scale and upsampling)."""
-    from benchmark.data import load_scenes
-    from benchmark.evaluate import Method, predict
-    from benchmark.runner import eval_split
+    from benchmark.core.data import load_scenes
+    from benchmark.supervised.evaluate import Method, predict
+    from benchmark.supervised.runner import eval_split
 
     scene = load_scenes(tiny_dataset, "test")[0]
     frames = [scene.load_rgb(f) for f in range(scene.frames)]
@@ -401,5 +402,5 @@ def test_rendered_scene_as_mp4_and_as_frames(tiny_dataset, files, tmp_path):
     assert [pairs.items[i] for i in mine] == [(0, f) for f in mine]
     batch = torch.utils.data.default_collate([pairs[i] for i in mine])
     with torch.no_grad():
-        want = predict(Method("depth", model, 0.3), batch, torch.device("cpu"))["depth"]
+        want = predict(Method(registry.DEPTH, model, 0.3), batch, torch.device("cpu"))["depth"]
     np.testing.assert_allclose(got, want.numpy(), rtol=1e-4, atol=1e-4)

@@ -255,7 +255,7 @@ def _loader_attack(ds: Path, tmp_path: Path, how: str) -> tuple[int, Path]:
 def test_benchmark_loader_refuses_frames_outside_the_dataset(ds, tmp_path, monkeypatch, how):
     """The training loader raises DataError naming the record before reading any frame; it used
     to train silently on the other dataset's file."""
-    from benchmark import data
+    from benchmark.core import data
 
     k, outside = _loader_attack(ds, tmp_path, how)
     opened: list[str] = []

@@ -1,4 +1,5 @@
-"""benchmark.metrics: hand-computed values, validity, clamping, batch invariance, DepthNet error."""
+"""benchmark.core.metrics: hand-computed values, validity, clamping, batch invariance, DepthNet
+error."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from benchmark.metrics import (
+from benchmark.core.metrics import (
     METRICS,
     aggregate,
     image_metrics,

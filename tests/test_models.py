@@ -12,8 +12,16 @@ import model_fixture
 import pytest
 import torch
 
-from benchmark.models import DepthNet, FlowNetS, count_parameters, macs
-from benchmark.registry import MODELS, OUTPUTS, build_model, list_models
+from benchmark.core.models import DepthNet, FlowNetS, count_parameters, macs
+from benchmark.core.registry import (
+    FLOW,
+    KINDS,
+    MODELS,
+    ModelSpec,
+    Target,
+    build_model,
+    list_models,
+)
 
 # Parameter count of the REFERENCE §4 architecture (= the public DepthNet code with batch norm):
 # encoder convs without bias + BN, deconv blocks (transposed conv with bias, 3×3 conv, BN),
@@ -94,26 +102,39 @@ def test_registry():
     assert {"flownets-depth", "flownets-flow", "oracle-flow", "constant"} <= set(list_models())
     assert list_models() == sorted(MODELS)
     for spec in MODELS.values():
-        assert spec.output in OUTPUTS
-        assert spec.trainable == (spec.output in ("depth", "flow"))
+        assert spec.kind in KINDS
+        assert spec.trainable == (spec.kind.target is not None) == (spec.build is not None)
         if not spec.trainable:
             with pytest.raises(ValueError, match="no network"):
                 build_model(spec.name)
             continue
         r = spec.recipe  # depth networks are trained like DepthNet (thesis Table 3.5),
         # flow networks with the public FlowNetS optimiser (Adam, lr 1e-4), same batch and epochs
-        lr = 1e-4 if spec.output == "flow" else 1e-2
+        lr = 1e-4 if spec.kind is FLOW else 1e-2
         assert r.lr == lr and r.batch_size == 256 and r.epochs == 55
         assert [round(f * r.epochs) for f in r.milestones] == [19, 30, 44, 53]
         assert r.loss_weights == (0.32, 0.08, 0.02, 0.01, 0.005)
-        assert r.loss_scale == (1 / 20 if spec.output == "flow" else 1.0)
+        assert r.loss_scale == (1 / 20 if spec.kind is FLOW else 1.0)
         if spec.name.endswith("-tiny"):  # full widths: the fixture test builds them
-            channels = 2 if spec.output == "flow" else 1
+            channels = 2 if spec.kind.target is Target.FLOW else 1
             with torch.no_grad():
                 out = spec.build().eval()(torch.zeros(1, 6, 64, 64))
             assert out[0].shape == (1, channels, 16, 16)
     with pytest.raises(ValueError, match="depthnet-tiny"):
         build_model("nope")
+
+
+def test_kinds_say_how_a_method_trains_and_is_scored():
+    """The registry's kinds: which train, on what target, and which metric picks best.pt."""
+    kinds = {spec.name: spec.kind for spec in MODELS.values()}
+    assert {k.name for k in KINDS} == {"depth", "flow", "oracle-flow", "constant"}
+    assert kinds["depthnet"].target is Target.DEPTH and kinds["depthnet"].best_by == "mae"
+    assert kinds["flownets-flow"].target is Target.FLOW and kinds["flownets-flow"].best_by == "epe"
+    assert not kinds["oracle-flow"].trains and not kinds["constant"].trains
+    assert kinds["depthnet-clamped"].scored_as is kinds["flownets-depth"].scored_as
+    with pytest.raises(ValueError, match="go together"):  # a network needs a training kind
+        ModelSpec("bad", "a network of a kind that does not train", MODELS["depthnet"].build,
+                  kind=MODELS["constant"].kind)  # fmt: skip
 
 
 def test_init_statistics(depthnet):
@@ -129,7 +150,7 @@ def test_init_statistics(depthnet):
 
 def test_multiscale_l1_by_hand():
     """Each output against the target area-averaged to its size, weighted (REFERENCE §5)."""
-    from benchmark.train import multiscale_loss
+    from benchmark.supervised.train import multiscale_loss
 
     target = torch.tensor([[1.0, 1, 3, 3], [1, 1, 3, 3], [5, 5, 7, 7], [5, 5, 7, 7]])[None]
     outputs = [torch.full((1, 1, 2, 2), 3.0), torch.full((1, 1, 1, 1), 5.0)]
@@ -141,7 +162,7 @@ def test_multiscale_l1_by_hand():
 def test_multiscale_epe_averages_valid_pixels_only():
     """Flow targets: each output pixel against the mean of the *valid* target pixels under it;
     output pixels over no valid pixel are left out."""
-    from benchmark.train import multiscale_loss
+    from benchmark.supervised.train import multiscale_loss
 
     target = torch.empty(1, 2, 4, 4)
     target[:, 0], target[:, 1] = 3.0, 4.0  # EPE 5 against zero flow
@@ -208,7 +229,7 @@ def test_untrained_flow_head_predicts_zero_flow_and_depth_head_does_not():
 
 
 def test_flow_recipe_is_the_public_flownets_adam():
-    from benchmark.runner import train_config
+    from benchmark.supervised.runner import train_config
 
     cfg = train_config("flownets-flow", Path("d"), Path("o"))
     assert (cfg.optimizer, cfg.lr, cfg.momentum, cfg.beta2) == ("adam", 1e-4, 0.9, 0.999)
@@ -221,8 +242,8 @@ def test_train_config_defaults_are_the_depthnet_recipe():
     """TrainConfig repeats no number of the registry: its recipe fields default to DepthNet's."""
     from dataclasses import asdict
 
-    from benchmark.config import TrainConfig
-    from benchmark.registry import DEPTH_RECIPE
+    from benchmark.core.config import TrainConfig
+    from benchmark.core.registry import DEPTH_RECIPE
 
     cfg = asdict(TrainConfig("depthnet", "d", "o"))
     assert {k: cfg[k] for k in asdict(DEPTH_RECIPE)} == asdict(DEPTH_RECIPE)
@@ -232,7 +253,7 @@ def test_flownets_trains_on_flow():
     """Steps of the recipe's optimizer (Adam) lower the multi-scale EPE of the tiny flow variant
     from its zero-flow start, towards a flow field with structure (a zero-mean random field
     would already be best matched by zero flow)."""
-    from benchmark.train import multiscale_loss
+    from benchmark.supervised.train import multiscale_loss
 
     torch.manual_seed(0)
     model = build_model("flownets-flow-tiny").train()

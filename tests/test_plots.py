@@ -1,11 +1,12 @@
-"""benchmark.plots: the data each figure draws (read back from its axes), and the PNG write."""
+"""benchmark.supervised.plots: the data each figure draws (read back from its axes), and the PNG
+write."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from benchmark import plots
+from benchmark.supervised import plots
 
 
 def curve(ax, i: int = 0) -> tuple[np.ndarray, np.ndarray]:

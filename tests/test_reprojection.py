@@ -1,4 +1,4 @@
-"""benchmark.reprojection: warps, photometric and smooth losses, occlusion detection.
+"""benchmark.unsupervised.reprojection: warps, photometric and smooth losses, occlusion detection.
 
 Expected values are computed by hand from the geometry (an analytic scene of textured planes,
 ray-cast here), not by re-running the module's formulas.
@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import torch
 
-from benchmark import reprojection as rp
+from benchmark.unsupervised import reprojection as rp
 from stillbox_gen.camera import rotation_vector_to_matrix
 
 DT = torch.float64

@@ -14,9 +14,10 @@ from conftest import invoke_main
 from test_bench import bench
 from torch.utils.data import DataLoader, default_collate
 
-from benchmark import cli, registry
-from benchmark.config import TrainConfig
-from benchmark.data import (
+from benchmark import cli
+from benchmark.core import registry
+from benchmark.core.config import TrainConfig
+from benchmark.core.data import (
     EpochBatches,
     EpochSampler,
     FrameStore,
@@ -24,7 +25,7 @@ from benchmark.data import (
     PairDataset,
     load_scenes,
 )
-from benchmark.train import TrainStep, make_optimizer
+from benchmark.supervised.train import TrainStep, make_optimizer
 
 
 @pytest.fixture(scope="module")
@@ -109,12 +110,13 @@ def test_levers_keep_the_loss_within_float_noise(model):
     """Channels-last format and the fused optimiser: the same losses over a few steps."""
     spec = registry.MODELS[model]
     cfg = TrainConfig(model, "", "")
-    if spec.output == "flow":
+    flow = spec.kind.target is registry.Target.FLOW
+    if flow:
         cfg.optimizer, cfg.lr = "adam", 1e-4
     g = torch.Generator().manual_seed(0)
     x = torch.randn(4, 6, 64, 64, generator=g)
-    shape = (4, 2, 64, 64) if spec.output == "flow" else (4, 64, 64)
-    y = torch.rand(shape, generator=g) * (3 if spec.output == "flow" else 100)
+    shape = (4, 2, 64, 64) if flow else (4, 64, 64)
+    y = torch.rand(shape, generator=g) * (3 if flow else 100)
     losses = []
     for levers in (False, True):
         torch.manual_seed(0)

@@ -18,7 +18,8 @@ import numpy as np
 
 from stillbox_gen import config
 from stillbox_gen.config import DatasetConfig
-from stillbox_gen.scene import SceneSpec, sample_scene
+from stillbox_gen.record import SceneSpec
+from stillbox_gen.scene import sample_scene
 
 from .world import World
 

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from stillbox_gen import camera, shapes
-from stillbox_gen.scene import SceneSpec
+from stillbox_gen.record import SceneSpec
 
 #: Metres: largest spacing of the samples along a swept segment (smaller for a small radius).
 MAX_SWEEP_SPACING = 0.05

@@ -21,9 +21,9 @@ from matplotlib.figure import Figure
 
 from stillbox_gen.conventions import MAX_DEPTH
 
-from . import runfolder
-from .metrics import MIN_DEPTH
-from .models import FLOW_DIV
+from ..core import runfolder
+from ..core.metrics import MIN_DEPTH
+from ..core.models import FLOW_DIV
 
 MIN_BIN_COUNT = 10  # bins with fewer pixels are not drawn
 QUARTILE_NOTE = "median, shaded 25–75 %"
@@ -187,7 +187,7 @@ def error_vs_estimate_figure(
 ) -> Figure:
     """Log error vs estimated depth (thesis Fig. 6.1).
 
-    Uses the scoring conventions of :mod:`benchmark.metrics`: predictions clamped to
+    Uses the scoring conventions of :mod:`benchmark.core.metrics`: predictions clamped to
     ``[MIN_DEPTH, max_depth]``, ground truth clipped to ``max_depth``, pixels whose ground truth is
     not finite or ≤ 0 ignored.
 
@@ -245,7 +245,7 @@ def sample_grid_figure(samples: list[dict], max_depth: float = MAX_DEPTH) -> Fig
     Args:
         samples: dicts with ``"img1"``, ``"img2"``: ``(H, W, 3)`` uint8 RGB; ``"gt"``, ``"pred"``:
             ``(H, W)`` depth in metres; ``"foe"``: ``(x, y)`` pixels (pixel-centre convention) or
-            None. The error uses the scoring conventions of :mod:`benchmark.metrics`.
+            None. The error uses the scoring conventions of :mod:`benchmark.core.metrics`.
         max_depth: metres, top of the depth colour scale.
     """
     if not samples:

@@ -2,8 +2,8 @@
 
 The thesis' Fig. 6.6 analogue. Each test sequence (e.g. ``stillbox-gen --frames 30
 --rotation-noise 0.0331``: the orientation noise of thesis 6.4) is run frame by frame as
-``stillbox-bench infer`` runs a video (benchmark.infer.frame_depth), once per depth checkpoint and
-strategy:
+``stillbox-bench infer`` runs a video (benchmark.video.infer.frame_depth), once per depth
+checkpoint and strategy:
 
 - ``nominal``: always the shift whose displacement is closest to the network's d0 (DepthNet's
   3 frames), the pairs it was trained on;
@@ -13,10 +13,10 @@ strategy:
 
 The planner starts afresh on each sequence at frame 1; frames t ≥ ``max_shift`` are scored (every
 strategy has every shift there, and has seen earlier frames), the same frames for every strategy,
-against the frame's ground-truth depth: MAE, MRE, MLE (benchmark.metrics: per image, then the mean
-over images) overall and per band of ground-truth depth (BANDS; a band's metrics are per image over
-its pixels, averaged over the images that have some), plus the network's time per frame (the n
-pairs are one batch). Displacements come from the camera positions of each frame.
+against the frame's ground-truth depth: MAE, MRE, MLE (benchmark.core.metrics: per image, then
+the mean over images) overall and per band of ground-truth depth (BANDS; a band's metrics are per
+image over its pixels, averaged over the images that have some), plus the network's time per
+frame (the n pairs are one batch). Displacements come from the camera positions of each frame.
 """
 
 from __future__ import annotations
@@ -34,18 +34,21 @@ from tqdm import tqdm
 
 from stillbox_gen.dataset import Dataset, Scene
 
-from . import metrics, runfolder
-from .checkpoint import depth_network
-from .config import MULTISHIFT_MAX_SHIFT
+from ..core import metrics, runfolder
+from ..core.errors import FieldError, Ref
 from .infer import frame_depth, network_outputs
 from .multishift import (
+    BETA_MAX,
     BETA_MEAN,
+    BETA_MIN,
     EMA_LAMBDA,
     MAX_SHIFTS,
+    MULTISHIFT_MAX_SHIFT,
     ShiftPlanner,
     closest_shift,
     displacements,
 )
+from .network import depth_network
 
 BANDS = ((0.0, 10.0), (10.0, 25.0), (25.0, 50.0), (50.0, 100.0))  # ground-truth depth, metres
 SCORES = ("mae", "mre", "mle")
@@ -69,23 +72,34 @@ def strategies(counts: tuple[int, ...]) -> list[Strategy]:
     """The nominal shift, then n = each of ``counts`` (1..MAX_SHIFTS)."""
     bad = [n for n in counts if not 1 <= n <= MAX_SHIFTS]
     if bad or not counts:
-        raise ValueError(f"--shifts: each n must be in 1..{MAX_SHIFTS}, got {counts}")
+        raise FieldError("counts", f"each n must be in 1..{MAX_SHIFTS}, got {counts}")
     return [Strategy(0), *(Strategy(n) for n in sorted(set(counts)))]
 
 
+def check_arguments(max_shift: int, beta_mean: float, limit: int | None) -> None:
+    """FieldError unless ``max_shift`` >= 1 (frames), BETA_MIN < ``beta_mean`` < BETA_MAX and
+    ``limit`` (sequences) is None or >= 1."""
+    if max_shift < 1:
+        raise FieldError("max_shift", f"must be at least 1, got {max_shift}")
+    if not BETA_MIN < beta_mean < BETA_MAX:
+        raise FieldError("beta_mean", f"must be in ({BETA_MIN}, {BETA_MAX}), got {beta_mean}")
+    if limit is not None and limit < 1:
+        raise FieldError("limit", f"must be at least 1, got {limit}")
+
+
 def sequences(data: Path, split: str, max_shift: int, limit: int | None) -> list[Scene]:
-    """The split's scenes (first ``limit``); ValueError naming --data when they are too short
-    for ``max_shift`` (the first scored frame) or absent."""
+    """The split's scenes (first ``limit``); FieldError on ``data`` when they are too short for
+    ``max_shift`` (the first scored frame) or absent."""
     ds = Dataset(data)
     scenes = ds.scenes(split, limit)
     if not scenes:
-        raise ValueError(f"--data {data}: no scene in the {split} split")
+        raise FieldError("data", f"no scene in the {split} split", where=f" {data}")
     frames = min(s.frames for s in scenes)
     if frames <= max_shift:
-        raise ValueError(
-            f"--data {data}: scenes of {frames} frames; --max-shift {max_shift} needs more "
-            f"(generate them with stillbox-gen --frames 30)"
-        )
+        raise FieldError(
+            "data", f"scenes of {frames} frames; ", Ref("max_shift"), f" {max_shift} needs more "
+            "(generate them with stillbox-gen --frames 30)", where=f" {data}",
+        )  # fmt: skip
     return scenes
 
 
@@ -158,20 +172,24 @@ def evaluate_multishift(
     limit: int | None = None,
     progress: bool = True,
 ) -> list[dict]:
-    """Rows of scores, one per (checkpoint, strategy); see the module doc. Every checkpoint is
-    loaded and checked before any frame is read (ValueError naming --ckpt or --data)."""
+    """Rows of scores, one per (checkpoint, strategy); see the module doc. The arguments are
+    checked and every checkpoint loaded before any frame is read (a one-line ValueError;
+    FieldError naming the argument)."""
+    check_arguments(max_shift, beta_mean, limit)
     plan = strategies(counts)
     nets = []
     for ckpt in checkpoints:
-        model, scale, info = depth_network(ckpt, "--ckpt")
+        model, scale, info = depth_network(ckpt, "ckpt")
         nets.append((ckpt, (model.to(device), info["clamp"], device), scale, info))
     scenes = sequences(data, split, max_shift, limit)
     size = scenes[0].load_rgb(0).shape[:2]
     for ckpt, _, _, info in nets:
         if (info["height"], info["width"]) != size:
-            raise ValueError(
-                f"--ckpt {ckpt}: trained on {info['width']}x{info['height']} frames, the "
-                f"sequences are {size[1]}x{size[0]}"
+            raise FieldError(
+                "ckpt",
+                f"trained on {info['width']}x{info['height']} frames, the sequences are "
+                f"{size[1]}x{size[0]}",
+                where=f" {ckpt}",
             )
     tallies = {(i, s.n): Tally() for i in range(len(nets)) for s in plan}
     for scene in tqdm(scenes, desc="sequences", unit="scene", disable=not progress):

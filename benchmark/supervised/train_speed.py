@@ -22,9 +22,11 @@ from pathlib import Path
 
 import torch
 
-from . import registry
-from .config import TrainConfig
-from .data import EpochSampler, FrameStore, PairDataset, load_scenes
+from ..core import registry
+from ..core.config import TrainConfig
+from ..core.data import EpochSampler, FrameStore, PairDataset, load_scenes
+from ..core.errors import FieldError
+from ..core.registry import Target
 from .speed import TRAIN_BATCHES, _sync, csv_name
 from .train import TrainStep, make_optimizer
 
@@ -40,17 +42,17 @@ def default_steps(batch: int) -> tuple[int, int]:
 class _Batches:
     """Training batches of one network: real pairs (``pairs``) or one random batch."""
 
-    def __init__(self, output: str, batch: int, pairs: PairDataset | None, size: int, seed: int):
+    def __init__(self, target: Target, batch: int, pairs: PairDataset | None, size: int, seed: int):
         self.batch, self.pairs = batch, pairs
         if pairs is None:
             g = torch.Generator().manual_seed(seed)
-            shape = (batch, 2, size, size) if output == "flow" else (batch, size, size)
-            target = torch.rand(shape, generator=g) * 100 if output == "depth" else None
-            if output == "flow":
-                target = torch.randn(shape, generator=g) * 3
+            if target is Target.FLOW:  # pixels
+                values = torch.randn((batch, 2, size, size), generator=g) * 3
+            else:  # metres
+                values = torch.rand((batch, size, size), generator=g) * 100
             self.random = {
                 "input": torch.randn(batch, 6, size, size, generator=g),
-                "target": target,
+                "target": values,
             }
         else:
             self.sampler = EpochSampler(len(pairs), seed)
@@ -89,7 +91,7 @@ def _variant(name: str, device: torch.device, levers: bool, compile_: bool) -> T
     return TrainStep(net, opt, device, cfg.loss_weights, cfg.loss_scale, channels_last)
 
 
-def _pairs(data: Path, output: str, needed: int, seed: int) -> PairDataset:
+def _pairs(data: Path, target: Target, needed: int, seed: int) -> PairDataset:
     """Train-mode pairs of the first train scenes holding at least ``needed`` frames."""
     scenes, frames = [], 0
     for s in load_scenes(data, "train"):
@@ -98,8 +100,8 @@ def _pairs(data: Path, output: str, needed: int, seed: int) -> PairDataset:
         scenes.append(s)
         frames += len(s.rgb)
     if not scenes:
-        raise ValueError(f"--data {data}: has no train scenes")
-    return PairDataset(FrameStore(scenes, progress=False), "train", seed=seed, target=output)
+        raise FieldError("data", "has no train scenes", where=f" {data}")
+    return PairDataset(FrameStore(scenes, progress=False), "train", seed=seed, target=target.value)
 
 
 def measure(
@@ -120,19 +122,19 @@ def measure(
     ``data`` (the dataset, or ``random``). ``warmup``/``steps`` None: :func:`default_steps`."""
     rows = []
     for name in names:
-        output = registry.MODELS[name].output
+        target = registry.MODELS[name].kind.target
         for batch in batches:
             w, n = default_steps(batch)
             w, n = (w if warmup is None else warmup), (n if steps is None else steps)
             pairs = None
             if data is not None:
                 pairs = _pairs(
-                    data, output, 2 * batch * (w + n) if baseline else batch * (w + n), seed
+                    data, target, 2 * batch * (w + n) if baseline else batch * (w + n), seed
                 )
             variants = {"on": _variant(name, device, True, compile_)}
             if baseline:
                 variants["off"] = _variant(name, device, False, False)
-            feeds = {v: _Batches(output, batch, pairs, size, seed) for v in variants}
+            feeds = {v: _Batches(target, batch, pairs, size, seed) for v in variants}
             times: dict[str, list[float]] = {v: [] for v in variants}
             waits: dict[str, list[float]] = {v: [] for v in variants}
             for i in range(w + n):
@@ -152,7 +154,7 @@ def measure(
                 rows.append(
                     {
                         "model": name,
-                        "output": output,
+                        "output": target.value,
                         "batch": batch,
                         "px": f"{size}x{size}"
                         if pairs is None

@@ -6,7 +6,7 @@ eq. 4.2); the photometric loss compares the two (eq. 5.3, §4.7.2); smooth losse
 inverse depth (eqs. 4.18-4.21, §4.4.5); the occlusion detection module (ODM, §4.5.6, Algorithm 1)
 finds the target pixels hidden in the reference, to drop from the photometric loss.
 
-Conventions (the dataset's, docs/FORMAT.md; the same as :mod:`benchmark.flow`):
+Conventions (the dataset's, docs/FORMAT.md; the same as :mod:`benchmark.core.flow`):
 
 - Every image, depth map, loss map and mask is batched ``(B, C, H, W)``, ``C = 1`` for depth,
   inverse depth ``ξ = 1/θ``, masks and per-pixel losses. Images are RGB in ``[0, 1]``.
@@ -18,7 +18,7 @@ Conventions (the dataset's, docs/FORMAT.md; the same as :mod:`benchmark.flow`):
   camera coordinates, ``X_ref = R·X_tgt + t`` (metres; ``(B, 3, 3)`` / ``(B, 3)`` or unbatched).
   For two frames of a dataset scene, ``scene.relative_pose(target, reference)`` is ``[R | t]``.
   For a stabilised camera (``R = I``) that moves by ``T`` from target to reference (in target
-  axes), ``t = −T``: the opposite sign of :mod:`benchmark.flow`'s displacement.
+  axes), ``t = −T``: the opposite sign of :mod:`benchmark.core.flow`'s displacement.
 - Smooth losses take the inverse depth ``ξ = 1/θ`` ``(B, 1, H, W)`` (1/m), the frame ``I`` it
   belongs to (``(B, C, H, W)``, or batch 1 for all), and κ (a number, or one per sample ``(B,)``).
 - Losses are returned per sample, ``(B,)``, so that a batch may hold independent problems (e.g.
@@ -52,7 +52,7 @@ import kornia
 import torch
 import torch.nn.functional as F
 
-from .flow import pixel_grid, warp
+from ..core.flow import pixel_grid, warp
 
 #: Weight α of DSSIM against L1 in the photometric loss (eq. 5.3).
 SSIM_WEIGHT = 0.15
@@ -137,8 +137,8 @@ def inverse_warp(
     """The reference frame resampled on the target's grid with the target's depth (eq. 4.2).
 
     ``out(p) = I_ref(Π(K·(R·θ(p)·K⁻¹p + t)))``, bilinear at pixel-centre coordinates (sampling
-    by :func:`benchmark.flow.warp`), differentiable with respect to ``reference``, ``depth`` and
-    the pose.
+    by :func:`benchmark.core.flow.warp`), differentiable with respect to ``reference``, ``depth``
+    and the pose.
 
     Args:
         reference: ``(B, C, H, W)`` reference frame.

@@ -42,6 +42,9 @@ EMA_LAMBDA = 0.5
 TRIM = (0.05, 0.90)
 #: most clusters, i.e. frame pairs per frame (thesis: "usually ranges from 1 to 4")
 MAX_SHIFTS = 4
+#: eval-multishift's largest frame shift (frames; 1.2 m at StillBox's 0.1 m per frame): frames
+#: t >= it of each sequence are scored
+MULTISHIFT_MAX_SHIFT = 12
 
 
 @dataclass(frozen=True)

@@ -7,7 +7,7 @@ flow / 20), and keep the checkpoint with the best validation EPE instead of the 
 
 A training writes ``config.json``, ``environment.json``, ``steps.csv`` (loss every
 ``log_every`` steps), ``metrics.csv`` (one row per validation), ``tb/`` (TensorBoard) and
-``checkpoints/{last,best}.pt`` into its run folder through benchmark.runfolder (docs/RUNS.md);
+``checkpoints/{last,best}.pt`` into its run folder through benchmark.core.runfolder (docs/RUNS.md);
 checkpoints are read back with ``weights_only=True``, so a checkpoint can never run code.
 Multi-process training works unchanged under ``torchrun`` (DDP; gloo on CPU, NCCL on GPUs): the
 main process (rank 0) logs, validates and saves.
@@ -18,7 +18,6 @@ from __future__ import annotations
 import math
 import os
 import platform
-import re
 import signal
 import time
 from collections.abc import Callable
@@ -32,10 +31,10 @@ from tqdm import tqdm
 
 from stillbox_gen.conventions import MAX_DEPTH
 
-from . import evaluate, registry, runfolder
-from .checkpoint import first_line, load_checkpoint, load_weights
-from .config import TrainConfig
-from .data import (
+from ..core import registry, runfolder
+from ..core.checkpoint import first_line, load_checkpoint, load_weights
+from ..core.config import TrainConfig, check_settings, flag_of
+from ..core.data import (
     EpochBatches,
     EpochSampler,
     FrameStore,
@@ -44,18 +43,9 @@ from .data import (
     camera_of,
     load_scenes,
 )
-
-
-def resolve_device(name: str) -> torch.device:
-    """``auto`` (CUDA when available), ``cpu``, ``cuda`` or ``cuda:N``; ValueError naming
-    --device otherwise."""
-    if not re.fullmatch(r"auto|cpu|cuda(:\d+)?", name):
-        raise ValueError(f"--device: unknown device '{name}' (auto, cpu, cuda or cuda:N)")
-    if name == "auto":
-        name = "cuda" if torch.cuda.is_available() else "cpu"
-    if name.startswith("cuda") and not torch.cuda.is_available():
-        raise ValueError(f"--device {name}: no CUDA device is available")
-    return torch.device(name)
+from ..core.device import resolve_device
+from ..core.errors import FieldError, Ref
+from . import evaluate
 
 
 def environment(device: torch.device) -> dict:
@@ -181,22 +171,16 @@ class TrainStep:
 
 
 RESUME_KEYS = ("optimizer", "scheduler", "state")
-#: TrainConfig fields a resumed run keeps from its checkpoint's config, with their flags (None:
+#: TrainConfig fields a resumed run keeps from its checkpoint's config (those without a flag are
 #: set by the recipe only). A change would not be applied (optimiser, scheduler and sampling
 #: position come from the checkpoint) or would make the run differ from the one config.json
 #: describes, so it is refused; --max-steps, --device, --threads and the logging and speed
 #: options may change (they are applied and recorded).
-RESUMED_FIELDS = {
-    "epochs": "--epochs",
-    "batch_size": "--batch-size",
-    "lr": "--lr",
-    "shift": "--shift",
-    "depth_range": "--clamp",
-    "seed": "--seed",
-    "pretrained": "--pretrained",
-    **dict.fromkeys(("optimizer", "momentum", "dampening", "beta2", "weight_decay"), None),
-    **dict.fromkeys(("milestones", "gamma", "loss_weights", "loss_scale"), None),
-}
+RESUMED_FIELDS = (
+    *("epochs", "batch_size", "lr", "shift", "depth_range", "seed", "pretrained"),
+    *("optimizer", "momentum", "dampening", "beta2", "weight_decay"),
+    *("milestones", "gamma", "loss_weights", "loss_scale"),
+)
 
 
 def _plain(value):
@@ -217,18 +201,20 @@ def check_resumed_settings(cfg: TrainConfig, ck: dict, where: str) -> None:
         now = _plain(getattr(cfg, field))
         if now == then:
             continue
-        flag = RESUMED_FIELDS[field]
-        if flag is None:
-            raise ValueError(
-                f"--resume {where}: trained with {field} {then}, this version's recipe has {now}"
+        if flag_of(field) is None:
+            raise FieldError(
+                "resume",
+                f"trained with {field} {then}, this version's recipe has {now}",
+                where=f" {where}",
             )
         shown = [
             ",".join(f"{v:g}" for v in x) if field == "depth_range" else x for x in (then, now)
         ]
-        raise ValueError(
-            f"{flag}: the run was trained with {shown[0]}, not {shown[1]}; a resumed run keeps "
-            f"its settings (leave {flag} out, or start a new --out)"
-        )
+        raise FieldError(
+            field,
+            f"the run was trained with {shown[0]}, not {shown[1]}; a resumed run keeps its "
+            "settings (leave ", Ref(field), " out, or start a new ", Ref("out"), ")",
+        )  # fmt: skip
 
 
 #: running sums of the open stage (steps since the last validation), kept in the checkpoint so
@@ -267,28 +253,29 @@ class Trainer:
         test split scored after training), then create the run folder: an error leaves nothing
         behind."""
         cfg = self.cfg
+        check_settings(asdict(cfg))  # FieldError naming the field (the CLI checked its flags)
         torch.manual_seed(cfg.seed)
         spec = registry.MODELS[cfg.model]
         if not spec.trainable:
             raise ValueError(f"{cfg.model}: has no network to train")
         last = runfolder.checkpoint_path(self.run, "last")
-        resume = load_checkpoint(last, "--resume") if cfg.resume else None
+        resume = load_checkpoint(last, "resume") if cfg.resume else None
         if resume is not None and resume["model_name"] != cfg.model:
-            raise ValueError(
-                f"--resume {last}: a run of '{resume['model_name']}', not '{cfg.model}'"
+            raise FieldError(
+                "resume", f"a run of '{resume['model_name']}', not '{cfg.model}'", where=f" {last}"
             )
         if resume is not None and not all(k in resume for k in RESUME_KEYS):
-            raise ValueError(f"--resume {last}: holds no training state (not a 'last.pt')")
+            raise FieldError(
+                "resume", "holds no training state (not a 'last.pt')", where=f" {last}"
+            )
         if resume is not None:
             check_resumed_settings(cfg, resume, last)
-        self.output = spec.output  # "depth" or "flow"
+        self.kind = spec.kind
         self.model = spec.build().to(self.device)
         self.nominal_displacement = None
         if cfg.pretrained and resume is None:  # resuming: the checkpoint's weights
-            where = f"--pretrained {cfg.pretrained}"
-            load_weights(
-                self.model, load_checkpoint(cfg.pretrained, "--pretrained"), where, cfg.model
-            )
+            ck = load_checkpoint(cfg.pretrained, "pretrained")
+            load_weights(self.model, ck, "pretrained", cfg.pretrained, cfg.model)
             self.log(f"initialised from {cfg.pretrained}")
         cuda = self.device.type == "cuda"
         if cfg.channels_last:
@@ -320,16 +307,18 @@ class Trainer:
 
         lo, hi = cfg.depth_range
         if not 0 <= lo < hi <= MAX_DEPTH:
-            raise ValueError(
-                f"--clamp: must be LO,HI metres with 0 <= LO < HI <= {MAX_DEPTH:g}, "
-                f"got {lo:g},{hi:g}"
+            raise FieldError(
+                "depth_range",
+                f"must be LO,HI metres with 0 <= LO < HI <= {MAX_DEPTH:g}, got {lo:g},{hi:g}",
             )
         train_scenes = load_scenes(Path(cfg.data), "train")
         val_scenes = load_scenes(Path(cfg.data), "val")
         if not train_scenes or not val_scenes:
-            raise ValueError(
-                f"--data {cfg.data}: needs scenes in both train and val splits "
-                f"(has {len(train_scenes)} train, {len(val_scenes)} val)"
+            raise FieldError(
+                "data",
+                "needs scenes in both train and val splits "
+                f"(has {len(train_scenes)} train, {len(val_scenes)} val)",
+                where=f" {cfg.data}",
             )
         t0 = time.perf_counter()
         show = cfg.progress and self.is_main_process
@@ -339,16 +328,16 @@ class Trainer:
         self._check_frame_size(cfg.data)
         frames = min(s.frames for s in val_scenes)
         if not 1 <= cfg.shift < frames:
-            raise ValueError(
-                f"--shift: must be at least 1 and below the {frames} frames of a scene, "
-                f"got {cfg.shift}"
+            raise FieldError(
+                "shift",
+                f"must be at least 1 and below the {frames} frames of a scene, got {cfg.shift}",
             )
         self.camera = camera_of(Path(cfg.data))
         # depth targets are expressed for the nominal shift of the training set's displacement
         disp = np.median([s.displacement for s in train_scenes])
         self.nominal_displacement = float(cfg.shift * disp)
         self.train_set = PairDataset(
-            self.train_store, "train", cfg.shift, cfg.seed, self.output, cfg.depth_range
+            self.train_store, "train", cfg.shift, cfg.seed, self.kind.target.value, cfg.depth_range
         )
         self.val_set = PairDataset(self.val_store, "eval", cfg.shift)
         self.per_rank_batch = max(1, cfg.batch_size // self.world)
@@ -366,9 +355,10 @@ class Trainer:
         )
         self.steps_per_epoch = len(self.train_set) // self.world // self.per_rank_batch
         if self.steps_per_epoch == 0:
-            raise ValueError(
-                f"--batch-size {cfg.batch_size}: larger than the "
-                f"{len(self.train_set)} training samples"
+            raise FieldError(
+                "batch_size",
+                f"larger than the {len(self.train_set)} training samples",
+                where=f" {cfg.batch_size}",
             )
         if check is not None and self.is_main_process:
             check()
@@ -378,28 +368,30 @@ class Trainer:
             self.log(f"resumed from {last} at step {self.state['global_step']}")
 
     def _check_frame_size(self, data: str) -> None:
-        """ValueError naming --data unless the frames (train and val) fit the network: height
-        and width multiples of its ``min_multiple`` pixels (64 for six stride-2 stages)."""
+        """FieldError on ``data`` unless the frames (train and val) fit the network: height and
+        width multiples of its ``min_multiple`` pixels (64 for six stride-2 stages)."""
         multiple = getattr(self.model, "min_multiple", 1)
         for store in (self.train_store, self.val_store):
             if store.height % multiple or store.width % multiple:
-                raise ValueError(
-                    f"--data {data}: frames of {store.width}x{store.height} px; "
-                    f"'{self.cfg.model}' needs sizes that are multiples of {multiple} px "
-                    f"(e.g. stillbox-gen --res {multiple})"
+                raise FieldError(
+                    "data",
+                    f"frames of {store.width}x{store.height} px; '{self.cfg.model}' needs sizes "
+                    f"that are multiples of {multiple} px (e.g. stillbox-gen --res {multiple})",
+                    where=f" {data}",
                 )
 
     def _load_training_state(self, ck: dict, path: Path) -> None:
         """Weights, optimiser, scheduler and counters (with the open stage's running sums)."""
-        load_weights(self.model, ck, f"--resume {path}", self.cfg.model)
+        load_weights(self.model, ck, "resume", path, self.cfg.model)
         try:
             self.opt.load_state_dict(ck["optimizer"])
             self.sched.load_state_dict(ck["scheduler"])
             self.state.update(ck["state"])
         except (KeyError, ValueError, TypeError) as e:
-            raise ValueError(
-                f"--resume {path}: its training state does not fit this run ({first_line(e)})"
-            ) from None
+            raise FieldError(
+                "resume", f"its training state does not fit this run ({first_line(e)})",
+                where=f" {path}",
+            ) from None  # fmt: skip
 
     def _start_run_folder(self) -> None:
         """Create the run folder (runfolder.start_logs), write config.json and environment.json,
@@ -476,7 +468,7 @@ class Trainer:
     def validate(self) -> dict:
         result = evaluate.evaluate(
             evaluate.Method(
-                self.output,
+                self.kind,
                 self.model,
                 self.nominal_displacement,
                 depth_range=registry.output_clamp(self.cfg.depth_range),
@@ -518,7 +510,7 @@ class Trainer:
                 f"step {st['global_step']}: train loss {train_loss:.3f}, val MAE "
                 f"{val['mae']:.3f} m, MRE {val['mre']:.3f}, MLE {val['mle']:.3f}{epe}"
             )
-            score = val["epe"] if self.output == "flow" else val["mae"]
+            score = val[self.kind.best_by]
             if score < st["best"] or not runfolder.checkpoint_path(self.run, "best").exists():
                 if score < st["best"]:  # a NaN score never becomes the best
                     st["best"] = score

@@ -1,5 +1,5 @@
 """Run reports: the content of summary.json / summary.md, the figures of a run, and comparison
-tables across runs. Files are written by benchmark.runfolder (docs/RUNS.md)."""
+tables across runs. Files are written by benchmark.core.runfolder (docs/RUNS.md)."""
 
 from __future__ import annotations
 
@@ -11,9 +11,11 @@ import numpy as np
 
 from stillbox_gen.conventions import MAX_DEPTH, NOMINAL_SHIFT
 
-from . import metrics, plots, registry, runfolder
+from ..core import metrics, registry, runfolder
+from ..core.registry import Scoring
+from ..core.runfolder import plot_path
+from . import plots
 from .evaluate import EvalResult
-from .runfolder import plot_path
 
 COLUMNS = ("mae", "mre", "mle", "sae", "sle", "p1.25", "p1.25^2", "p1.25^3", "depth_error", "epe")
 HEADERS = (
@@ -45,14 +47,15 @@ EPE_FORMULA = (
     "in front of both cameras; per image, then averaged like the other metrics"
 )
 _CLAMP = f"[{metrics.MIN_DEPTH:g}, {MAX_DEPTH:g}]"
+#: summary.json's "scale": how each way of scoring (registry.Scoring) turns outputs into metres
 SCALE_RULES = {
-    "depth": "prediction × |pair translation| / nominal displacement (known displacement; never "
-    "the ground-truth median)",
-    "flow": "depth from the predicted flow and the pair's known translation (FOE geometry, "
-    f"benchmark.flow), clamped to {_CLAMP} m; every pixel scored, the FOE's included",
-    "oracle-flow": "depth from the exact flow and the pair's known translation (FOE geometry), "
-    f"clamped to {_CLAMP} m; every pixel scored",
-    "constant": "one depth everywhere: the training split's median depth (no scale needed)",
+    Scoring.DEPTH: "prediction × |pair translation| / nominal displacement (known displacement; "
+    "never the ground-truth median)",
+    Scoring.FLOW: "depth from the predicted flow and the pair's known translation (FOE "
+    f"geometry, benchmark.flow), clamped to {_CLAMP} m; every pixel scored, the FOE's included",
+    Scoring.EXACT_FLOW: "depth from the exact flow and the pair's known translation (FOE "
+    f"geometry), clamped to {_CLAMP} m; every pixel scored",
+    Scoring.CONSTANT: "one depth everywhere: the training split's median depth (no scale needed)",
 }
 FOE_BIN_EDGES = (0.0, 1.0, 2.0, 4.0, 8.0, 16.0, 32.0, 64.0, 128.0, np.inf)  # pixels
 
@@ -117,29 +120,30 @@ def write_plots(run: Path, model: str, result: EvalResult) -> None:
         plots.sample_grid(result.samples, plot_path(run, "samples"))
     rows = runfolder.read_rows(run, runfolder.METRICS_CSV)
     if rows:
-        plots.learning_curve(rows, _output(model), plot_path(run, "learning_curve"))
+        plots.learning_curve(rows, _kind(model).name, plot_path(run, "learning_curve"))
 
 
-def _output(model: str) -> str:
-    return registry.MODELS[model].output if model in registry.MODELS else "depth"
+def _kind(model: str) -> registry.Kind:
+    """The registered method's kind (a depth network for a name the registry does not know)."""
+    return registry.MODELS[model].kind if model in registry.MODELS else registry.DEPTH
 
 
 def summarize(model: str, result: EvalResult, info: dict) -> dict:
     """summary.json's content: model, output, ``info`` (dataset, split, timing…), metrics, every
     formula, the averaging and scale rules, the error by FOE distance, the thesis' numbers."""
-    output = _output(model)
+    kind = _kind(model)
     px = result.pixels
     formulas = {**metrics.FORMULAS, "depth_error": DEPTH_ERROR_FORMULA}
     if "epe" in result.summary:
         formulas["epe"] = EPE_FORMULA
     return {
         "model": model,
-        "output": output,
+        "output": kind.name,
         **info,
         "metrics": result.summary,
         "formulas": formulas,
         "averaging_rule": metrics.AVERAGING_RULE,
-        "scale": SCALE_RULES[output],
+        "scale": SCALE_RULES[kind.scored_as],
         "error_by_foe_distance": foe_bins(px["foe_distance"], px["abs_err"]) if px else [],
         "thesis_reference_64px": THESIS_64.get(model.removesuffix("-tiny")),
     }

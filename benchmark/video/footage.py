@@ -9,8 +9,8 @@ camera's displacement between frames, and the depth files, colour maps and previ
 - Motion: the camera positions (m) of every frame, from a constant speed or a poses CSV;
   d(t, δ) = |p_t − p_{t−δ}| (m) is the displacement between frames t − δ and t.
 
-Errors are ValueError of one line naming the flag (``--input``, ``--poses``, ``--fps`` …) and the
-file.
+Errors are FieldError (benchmark.core.errors) of one line naming the InferOptions field
+(``input``, ``poses``, ``fps`` …) and the file; the command line names the flags.
 """
 
 from __future__ import annotations
@@ -25,6 +25,8 @@ import cv2
 import numpy as np
 
 from stillbox_gen.camera import focal_from_fov
+
+from ..core.errors import FieldError, Ref  # noqa: E402
 
 #: image files read from a folder of frames (case-insensitive), in name order
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
@@ -46,7 +48,7 @@ class FrameSource:
     def __init__(self, path: str | Path):
         self.path = Path(path)
         if not self.path.exists():
-            raise ValueError(f"--input: no such file or folder '{self.path}'")
+            raise FieldError("input", f"no such file or folder '{self.path}'")
         self.files: list[Path] | None = None
         self.fps: float | None = None
         if self.path.is_dir():
@@ -55,7 +57,7 @@ class FrameSource:
             )
             if not self.files:
                 exts = ", ".join(IMAGE_EXTENSIONS)
-                raise ValueError(f"--input: no image files ({exts}) in folder '{self.path}'")
+                raise FieldError("input", f"no image files ({exts}) in folder '{self.path}'")
             self.count = len(self.files)
             first = self._read_image(self.files[0])
         else:
@@ -63,7 +65,7 @@ class FrameSource:
             ok, frame = cap.read() if cap.isOpened() else (False, None)
             if not ok:
                 cap.release()
-                raise ValueError(f"--input: '{self.path}' is not a readable video")
+                raise FieldError("input", f"'{self.path}' is not a readable video")
             fps = cap.get(cv2.CAP_PROP_FPS)
             self.fps = float(fps) if fps > 0 and math.isfinite(fps) else None
             self.count = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
@@ -76,17 +78,18 @@ class FrameSource:
     def _read_image(self, path: Path) -> np.ndarray:
         img = cv2.imread(str(path), cv2.IMREAD_COLOR)
         if img is None:
-            raise ValueError(f"--input: cannot read image '{path}'")
+            raise FieldError("input", f"cannot read image '{path}'")
         if self.files and path != self.files[0] and img.shape[:2] != (self.height, self.width):
-            raise ValueError(
-                f"--input: '{path}' is {img.shape[1]}x{img.shape[0]}, the first frame "
-                f"{self.width}x{self.height}"
+            raise FieldError(
+                "input",
+                f"'{path}' is {img.shape[1]}x{img.shape[0]}, the first frame "
+                f"{self.width}x{self.height}",
             )
         return img[..., ::-1]
 
     def __iter__(self) -> Iterator[np.ndarray]:
         """The ``count`` frames, (H, W, 3) uint8 RGB, in order. A video that decodes fewer
-        frames than its container lists (garbled or cut) is a ValueError naming --input and
+        frames than its container lists (garbled or cut) is a FieldError on ``input`` with
         both counts, when the first frame that fails is reached."""
         if self.files is not None:
             for p in self.files:
@@ -97,9 +100,10 @@ class FrameSource:
             for k in range(self.count):
                 ok, frame = cap.read()
                 if not ok:
-                    raise ValueError(
-                        f"--input: '{self.path}' decodes {k} of the {self.count} frames its "
-                        f"container lists (frame {k} fails): garbled or cut; re-encode it"
+                    raise FieldError(
+                        "input",
+                        f"'{self.path}' decodes {k} of the {self.count} frames its container "
+                        f"lists (frame {k} fails): garbled or cut; re-encode it",
                     )
                 yield np.ascontiguousarray(frame[..., ::-1])
         finally:
@@ -181,34 +185,40 @@ def read_poses(
     ``vx,vy,vz`` velocities (m/s) integrated with the trapezoid rule from position 0 at times
     ``t`` (s, increasing) or frame/``fps``. One row per frame.
     """
-    where = f"--poses {path}"
+    where = f" {path}"
     try:
         with open(path, newline="") as f:
             rows = list(csv.reader(f))
     except (OSError, UnicodeDecodeError) as e:
-        raise ValueError(f"{where}: cannot read it ({e.__class__.__name__})") from None
+        raise FieldError("poses", f"cannot read it ({e.__class__.__name__})", where=where) from None
     if not rows:
-        raise ValueError(f"{where}: empty file, expected a header row")
+        raise FieldError("poses", "empty file, expected a header row", where=where)
     header = [c.strip() for c in rows[0]]
     kind = "xyz" if {"x", "y", "z"} <= set(header) else None
     kind = kind or ("v" if {"vx", "vy", "vz"} <= set(header) else None)
     if kind is None:
-        raise ValueError(f"{where}: header must have columns x,y,z or vx,vy,vz, got {header}")
+        raise FieldError(
+            "poses", f"header must have columns x,y,z or vx,vy,vz, got {header}", where=where
+        )
     names = ["x", "y", "z"] if kind == "xyz" else ["vx", "vy", "vz"]
     has_t = "t" in header
     cols = [header.index(n) for n in names + (["t"] if has_t else [])]
     body = rows[1:]
     if len(body) != frames:
-        raise ValueError(f"{where}: {len(body)} rows for {frames} frames; give one row per frame")
+        raise FieldError(
+            "poses", f"{len(body)} rows for {frames} frames; give one row per frame", where=where
+        )
     values = np.array([_row(where, r, n + 2, header, cols) for n, r in enumerate(body)])
     if has_t and len(values) > 1 and not (np.diff(values[:, 3]) > 0).all():
         row = int(np.argmin(np.diff(values[:, 3]) > 0)) + 3
-        raise ValueError(f"{where}: row {row}, column 't': times must increase")
+        raise FieldError("poses", f"row {row}, column 't': times must increase", where=where)
     times = values[:, 3] if has_t else None
     if kind == "xyz":
         return values[:, :3], times
     if not has_t and fps is None:
-        raise ValueError("--fps: needed to integrate the velocities of --poses (no 't' column)")
+        raise FieldError(
+            "fps", "needed to integrate the velocities of ", Ref("poses"), " (no 't' column)"
+        )
     t = times if times is not None else np.arange(frames) / fps
     v = values[:, :3]
     steps = (v[1:] + v[:-1]) / 2 * np.diff(t)[:, None]
@@ -225,7 +235,9 @@ def _row(where: str, row: list[str], line: int, header: list[str], cols: list[in
         except ValueError:
             value = math.nan
         if not math.isfinite(value):
-            raise ValueError(f"{where}: row {line}, column '{header[c]}': not a number '{text}'")
+            raise FieldError(
+                "poses", f"row {line}, column '{header[c]}': not a number '{text}'", where=where
+            )
         out.append(value)
     return out
 

@@ -19,14 +19,15 @@ from pathlib import Path
 
 import torch
 
-from . import models, registry
+from ..core import models, registry
 
 DEFAULT_MODELS = ("depthnet", "flownets-depth", "flownets-flow")  # thesis Table 3.6's networks
 DEFAULT_MAC_SIZES = (64, 128, 256, 512)  # square input sizes of the GMAC columns, pixels
 DEFAULT_TIME_SIZE = 64  # square input size of the timings, pixels
 DEFAULT_WARMUP = 3  # untimed passes before timing
 DEFAULT_REPEATS = 20  # timed passes (the median is reported)
-#: speed --train (benchmark.train_speed): DepthNet and FlowNetS (flow output, Adam), batch sizes
+#: speed --train (benchmark.supervised.train_speed): DepthNet and FlowNetS (flow output, Adam),
+#: batch sizes
 TRAIN_MODELS = ("depthnet", "flownets-flow")
 TRAIN_BATCHES = (8, 256)
 

@@ -1,11 +1,11 @@
 """``stillbox-bench infer``: depth maps of a user's own stabilised video (thesis chapter 6).
 
 For every frame t ≥ 1 the network sees n pairs (I_{t−δ_i}, I_t), one batch, with the frame shifts
-δ_i chosen by :class:`benchmark.multishift.ShiftPlanner` from the depth of the previous frames;
-each output is scaled by its pair's displacement d(t, δ_i) (eq. 6.1) and the n maps are fused
-(eq. 6.3). The depth belongs to frame t (the later frame of each pair); frame 0 has no earlier
+δ_i chosen by :class:`benchmark.video.multishift.ShiftPlanner` from the depth of the previous
+frames; each output is scaled by its pair's displacement d(t, δ_i) (eq. 6.1) and the n maps are
+fused (eq. 6.3). The depth belongs to frame t (the later frame of each pair); frame 0 has no earlier
 frame and gets none. Frames are centre-cropped to the training field of view and resized to the
-network's input size (benchmark.video.crop_box).
+network's input size (benchmark.video.footage.crop_box).
 
 Outputs (``--out``, written in a temporary sibling folder and renamed at the end, so an error
 leaves nothing half written): ``depth/NNNNNN.npy|exr`` (float32 metres, NNNNNN = frame index),
@@ -33,10 +33,10 @@ from tqdm import tqdm
 from stillbox_gen.conventions import MAX_DEPTH
 from stillbox_gen.formats import temp_path
 
-from . import video
-from .checkpoint import depth_network
-from .data import normalise
-from .metrics import upsample_to
+from ..core.data import normalise
+from ..core.errors import FieldError, Ref
+from ..core.metrics import upsample_to
+from . import footage
 from .multishift import (
     BETA_MAX,
     BETA_MEAN,
@@ -48,6 +48,7 @@ from .multishift import (
     displacements,
     fuse,
 )
+from .network import depth_network
 
 MIN_MAX_SHIFT = 8  # smallest default --max-shift (frames)
 MAX_MAX_SHIFT = 1000  # largest default --max-shift (frames kept in memory)
@@ -88,13 +89,13 @@ class InferOptions:
 class Job:
     """Everything checked and opened, before anything is written."""
 
-    source: video.FrameSource
+    source: footage.FrameSource
     model: torch.nn.Module
     scale: DepthScale
     info: dict
     positions: np.ndarray  # (frames, 3) metres
     fps: float  # frames/s of the preview
-    crop: video.Crop
+    crop: footage.Crop
     size: tuple[int, int]  # network input (width, height), pixels
     max_shift: int
     device: torch.device
@@ -102,51 +103,60 @@ class Job:
     warning: str | None = None
 
 
-def _positive(flag: str, value: float | None) -> None:
+def _positive(name: str, value: float | None) -> None:
     if value is not None and not (value > 0 and math.isfinite(value)):
-        raise ValueError(f"{flag}: must be a positive number, got {value}")
+        raise FieldError(name, f"must be a positive number, got {value}")
 
 
 def check_options(o: InferOptions) -> None:
-    """The numeric options and --out (ValueError naming the flag); reads no file."""
+    """The numeric options and ``out`` (FieldError naming the InferOptions field); reads no
+    file."""
     if (o.speed is None) == (o.poses is None):
-        raise ValueError("--speed: give either --speed M/S or --poses CSV (exactly one)")
-    for flag, value in (("--speed", o.speed), ("--fps", o.fps), ("--focal", o.focal)):
-        _positive(flag, value)
-    _positive("--max-depth", o.max_depth)
-    for flag, fov in (("--fov", o.fov), ("--train-fov", o.train_fov)):
+        raise FieldError(
+            "speed", "give either ", Ref("speed"), " M/S or ", Ref("poses"), " CSV (exactly one)"
+        )
+    for name in ("speed", "fps", "focal", "max_depth"):
+        _positive(name, getattr(o, name))
+    for name in ("fov", "train_fov"):
+        fov = getattr(o, name)
         if fov is not None and not 0 < fov < 180:
-            raise ValueError(f"{flag}: must be in (0, 180) degrees, got {fov}")
+            raise FieldError(name, f"must be in (0, 180) degrees, got {fov}")
     if o.fov is not None and o.focal is not None:
-        raise ValueError("--focal: give --fov or --focal, not both")
+        raise FieldError("focal", "give ", Ref("fov"), " or ", Ref("focal"), ", not both")
     if not 1 <= o.shifts <= MAX_SHIFTS:
-        raise ValueError(f"--shifts: must be in 1..{MAX_SHIFTS}, got {o.shifts}")
+        raise FieldError("shifts", f"must be in 1..{MAX_SHIFTS}, got {o.shifts}")
     if o.fixed_shift is not None and (o.fixed_shift < 1 or o.shifts != 1):
-        raise ValueError("--fixed-shift: must be at least 1, with --shifts 1 (one pair a frame)")
+        raise FieldError(
+            "fixed_shift", "must be at least 1, with ", Ref("shifts"), " 1 (one pair a frame)"
+        )
     if o.max_shift is not None and o.max_shift < 1:
-        raise ValueError(f"--max-shift: must be at least 1, got {o.max_shift}")
+        raise FieldError("max_shift", f"must be at least 1, got {o.max_shift}")
     if not 0 <= o.ema < 1:
-        raise ValueError(f"--ema: must be in [0, 1), got {o.ema}")
+        raise FieldError("ema", f"must be in [0, 1), got {o.ema}")
     if not BETA_MIN < o.beta_mean < BETA_MAX:
-        raise ValueError(f"--beta-mean: must be in ({BETA_MIN}, {BETA_MAX}), got {o.beta_mean}")
+        raise FieldError("beta_mean", f"must be in ({BETA_MIN}, {BETA_MAX}), got {o.beta_mean}")
     if o.train_fov is not None and o.res is None:
-        raise ValueError("--train-fov: give --res WxH too (the training frame size)")
+        raise FieldError("train_fov", "give ", Ref("res"), " WxH too (the training frame size)")
     if o.out.exists() and (not o.out.is_dir() or any(o.out.iterdir())):
-        raise ValueError(f"--out: '{o.out}' exists and is not an empty folder")
+        raise FieldError("out", f"'{o.out}' exists and is not an empty folder")
 
 
-def _motion(o: InferOptions, source: video.FrameSource) -> tuple[np.ndarray, float]:
+def _motion(o: InferOptions, source: footage.FrameSource) -> tuple[np.ndarray, float]:
     """Camera positions (frames, 3) m and the frame rate (frames/s) of the preview."""
     fps = o.fps or source.fps
     if o.speed is not None:
         if fps is None:
-            raise ValueError("--fps: needed with --speed (the input does not give its frame rate)")
-        return video.constant_speed_positions(o.speed, fps, source.count), fps
-    positions, times = video.read_poses(o.poses, source.count, fps)
+            raise FieldError(
+                "fps", "needed with ", Ref("speed"), " (the input does not give its frame rate)"
+            )
+        return footage.constant_speed_positions(o.speed, fps, source.count), fps
+    positions, times = footage.read_poses(o.poses, source.count, fps)
     if fps is None and times is not None and len(times) > 1:
         fps = 1.0 / float(np.median(np.diff(times)))
     if fps is None:
-        raise ValueError("--fps: needed for a folder of frames (no 't' column in --poses)")
+        raise FieldError(
+            "fps", "needed for a folder of frames (no 't' column in ", Ref("poses"), ")"
+        )
     return positions, fps
 
 
@@ -160,17 +170,19 @@ def default_max_shift(positions: np.ndarray, d0: float) -> int:
     return int(min(MAX_MAX_SHIFT, max(MIN_MAX_SHIFT, 2 * math.ceil(d0 / np.median(steps)))))
 
 
-def _geometry(o: InferOptions, info: dict, source: video.FrameSource) -> tuple:
+def _geometry(o: InferOptions, info: dict, source: footage.FrameSource) -> tuple:
     """Network input size, crop box, focal lengths and the field-of-view warning (or None)."""
     w, h = o.res or (info["width"], info["height"])
     if w % 64 or h % 64 or not (64 <= w <= MAX_RES and 64 <= h <= MAX_RES):
-        raise ValueError(
-            f"--res: the network needs multiples of 64 pixels from 64 to {MAX_RES}, got {w}x{h}"
-            + ("" if o.res else f" (the training size of --ckpt {o.ckpt}; give --res)")
+        whose = (" (the training size of ", Ref("ckpt"), f" {o.ckpt}; give ", Ref("res"), ")")
+        raise FieldError(
+            "res",
+            f"the network needs multiples of 64 pixels from 64 to {MAX_RES}, got {w}x{h}",
+            *(() if o.res else whose),
         )
-    f_train = video.focal_px(w, info["fov_deg"])
-    f_video = video.focal_px(source.width, o.fov or info["fov_deg"], o.focal)
-    crop = video.crop_box(source.width, source.height, w, h, f_video, f_train)
+    f_train = footage.focal_px(w, info["fov_deg"])
+    f_video = footage.focal_px(source.width, o.fov or info["fov_deg"], o.focal)
+    crop = footage.crop_box(source.width, source.height, w, h, f_video, f_train)
     focals = {"video_focal_px": f_video, "train_focal_px_at_output": f_train}
     warning = None
     if crop.factor < 1:
@@ -183,22 +195,22 @@ def _geometry(o: InferOptions, info: dict, source: video.FrameSource) -> tuple:
 
 
 def _check_fixed_shift(o: InferOptions, frames: int) -> None:
-    """--fixed-shift within what the input allows: below its ``frames`` frames and at most
-    --max-shift (ValueError naming the flag). Frames t < shift still use shift t (all there is)."""
+    """``fixed_shift`` within what the input allows: below its ``frames`` frames and at most
+    ``max_shift`` (FieldError). Frames t < shift still use shift t (all there is)."""
     shift = o.fixed_shift
     if shift is not None and shift >= frames:
-        raise ValueError(
-            f"--fixed-shift: {shift} frames, but '{o.input}' has {frames} frames "
-            f"(at most {frames - 1})"
+        raise FieldError(
+            "fixed_shift",
+            f"{shift} frames, but '{o.input}' has {frames} frames (at most {frames - 1})",
         )
     if shift is not None and o.max_shift is not None and shift > o.max_shift:
-        raise ValueError(f"--fixed-shift: {shift} is above --max-shift {o.max_shift}")
+        raise FieldError("fixed_shift", f"{shift} is above ", Ref("max_shift"), f" {o.max_shift}")
 
 
 def prepare(o: InferOptions) -> Job:
-    """Check every option and input, load the network: ValueError of one line naming the flag.
-    Nothing is written."""
-    from .train import resolve_device
+    """Check every option and input, load the network: a one-line ValueError (FieldError naming
+    the InferOptions field). Nothing is written."""
+    from ..core.device import resolve_device
 
     check_options(o)
     device = resolve_device(o.device)
@@ -206,9 +218,9 @@ def prepare(o: InferOptions) -> Job:
     if o.train_fov is not None:
         camera = {"width": o.res[0], "height": o.res[1], "fov_deg": o.train_fov}
     if not o.ckpt.is_file():
-        raise ValueError(f"--ckpt: no such file '{o.ckpt}'")
-    model, scale, info = depth_network(o.ckpt, "--ckpt", camera)
-    source = video.FrameSource(o.input)
+        raise FieldError("ckpt", f"no such file '{o.ckpt}'")
+    model, scale, info = depth_network(o.ckpt, "ckpt", camera)
+    source = footage.FrameSource(o.input)
     _check_fixed_shift(o, source.count)
     positions, fps = _motion(o, source)
     size, crop, focals, warning = _geometry(o, info, source)
@@ -226,8 +238,8 @@ class Outputs:
         self.folder, self.suffix, self.max_depth = folder, f".{depth_format}", max_depth
         (folder / "depth").mkdir(parents=True)
         (folder / "depth_png").mkdir()
-        self.lut = video.colour_lut()
-        self.preview = video.PreviewWriter(folder / "preview.mp4", job.fps, *job.size)
+        self.lut = footage.colour_lut()
+        self.preview = footage.PreviewWriter(folder / "preview.mp4", job.fps, *job.size)
         self.csv_file = open(folder / "frames.csv", "w", newline="")  # noqa: SIM115 - closed by close()
         self.csv = csv.writer(self.csv_file)
         self.csv.writerow(CSV_COLUMNS)
@@ -243,9 +255,9 @@ class Outputs:
 
     def frame(self, t: int, rgb: np.ndarray, depth: np.ndarray) -> None:
         """Depth file, colour PNG and preview frame of frame t."""
-        video.write_depth(self.folder / "depth" / f"{t:06d}{self.suffix}", depth)
-        colours = video.colourise(depth, self.max_depth, self.lut)
-        video.write_png(self.folder / "depth_png" / f"{t:06d}.png", colours)
+        footage.write_depth(self.folder / "depth" / f"{t:06d}{self.suffix}", depth)
+        colours = footage.colourise(depth, self.max_depth, self.lut)
+        footage.write_png(self.folder / "depth_png" / f"{t:06d}.png", colours)
         self.preview.write(rgb, colours)
 
     def close(self) -> None:
@@ -335,7 +347,7 @@ def _loop(job: Job, o: InferOptions, folder: Path) -> dict:
     bar = tqdm(total=job.source.count, unit="frame", disable=o.quiet, desc="infer")
     try:
         for t, frame in enumerate(job.source):
-            rgb = video.prepare_frame(frame, job.crop, *job.size)
+            rgb = footage.prepare_frame(frame, job.crop, *job.size)
             ring.append(rgb)
             stats["frames"] += 1
             bar.update()

@@ -4,10 +4,10 @@ Depth is scaled by the known displacement, never by the ground truth: a depth ne
 its training set's nominal displacement (shift × metres per frame), so its output is multiplied
 by |translation of the pair| / nominal displacement. A flow network's 1/4-resolution flow is
 upsampled bilinearly to full resolution (its values are already full-resolution pixels), turned
-into depth with the pair's known translation (benchmark.flow.depth_from_flow, clamped to
+into depth with the pair's known translation (benchmark.core.flow.depth_from_flow, clamped to
 [0.1, 100] m, every pixel kept, the FOE's neighbourhood included) and its end-point error (EPE)
 against the exact flow is reported too. ``oracle-flow`` feeds the exact flow to the same geometry;
-``constant`` predicts one depth everywhere. Metrics: benchmark.metrics (per image at full
+``constant`` predicts one depth everywhere. Metrics: benchmark.core.metrics (per image at full
 resolution; then equal-weight mean over images), plus the original DepthNet "depth error" at 1/4
 resolution (for methods without a 1/4-resolution depth output: their full-resolution depth,
 area-downsampled by 4).
@@ -24,14 +24,15 @@ import torch.nn.functional as F
 
 from stillbox_gen.conventions import MAX_DEPTH
 
-from . import flow, geometry, metrics, runfolder
+from ..core import flow, geometry, metrics, runfolder
+from ..core.registry import DEPTH, Kind, Scoring
 
 
 @dataclass
 class Method:
     """How a registered method turns a batch of pairs into depth.
 
-    ``output``: "depth", "flow", "oracle-flow" or "constant" (see models.ModelSpec);
+    ``kind``: the registry's :class:`benchmark.core.registry.Kind` (how depth is obtained);
     ``model``: the network (depth and flow methods); ``nominal_displacement``: metres the depth
     network answers for (depth methods); ``constant``: metres (constant method);
     ``flow_noise``: standard deviation (pixels) of Gaussian noise added to the exact flow of
@@ -40,7 +41,7 @@ class Method:
     scaling (its training range; None: not clamped).
     """
 
-    output: str
+    kind: Kind
     model: torch.nn.Module | None = None
     nominal_displacement: float | None = None
     constant: float | None = None
@@ -54,7 +55,8 @@ def predict(method: Method, batch: dict, device: torch.device) -> dict[str, torc
     gt = batch["target"].to(device)
     b, h, w = gt.shape
     out: dict[str, torch.Tensor] = {}
-    if method.output == "depth":
+    scoring = method.kind.scored_as
+    if scoring is Scoring.DEPTH:
         scale = batch["translation"].norm(dim=1).to(device) / method.nominal_displacement
         raw = method.model(batch["input"].to(device))[0]
         if method.depth_range is not None:
@@ -62,13 +64,13 @@ def predict(method: Method, batch: dict, device: torch.device) -> dict[str, torc
         out["depth_q"] = raw * scale.view(-1, 1, 1, 1)
         out["depth"] = metrics.upsample_to(out["depth_q"], h, w)
         return out
-    if method.output == "constant":
+    if scoring is Scoring.CONSTANT:
         out["depth"] = torch.full_like(gt, method.constant)
-    elif method.output in ("flow", "oracle-flow"):
+    elif scoring in (Scoring.FLOW, Scoring.EXACT_FLOW):
         K = batch["K"].to(device, torch.float64)
         back = -batch["translation"].to(device, torch.float64)  # second frame -> first frame
         out["gt_flow"] = flow.flow_from_depth(gt.to(torch.float64), K, back)
-        if method.output == "flow":
+        if scoring is Scoring.FLOW:
             f_q = method.model(batch["input"].to(device))[0]
             f = F.interpolate(f_q, size=(h, w), mode="bilinear", align_corners=False)
             out["flow"] = f
@@ -90,7 +92,7 @@ def predict(method: Method, batch: dict, device: torch.device) -> dict[str, torc
                 out["flow"] = out["gt_flow"] + method.flow_noise * noise.to(device)
         out["depth"] = flow.depth_from_flow(out["flow"].to(torch.float64), K, back).to(gt.dtype)
     else:
-        raise ValueError(f"unknown method output {method.output!r}")
+        raise ValueError(f"unknown scoring {scoring!r}")
     out["depth_q"] = F.adaptive_avg_pool2d(out["depth"][:, None], (h // 4, w // 4))
     return out
 
@@ -124,7 +126,7 @@ def evaluate(
     """Score a method (or a depth network with its ``nominal_displacement``) on an eval-mode
     PairDataset; returns aggregated and per-pair metrics (plus ``epe`` for flow methods)."""
     if isinstance(method, torch.nn.Module):
-        method = Method("depth", method, nominal_displacement)
+        method = Method(DEPTH, method, nominal_displacement)
     model = method.model
     was_training = model is not None and model.training
     if model is not None:

@@ -1,54 +1,26 @@
 """Registered methods: a name → what it predicts, how to build its network, how to train it.
 
 Methods (``MODELS``): DepthNet (depth directly), FlowNetS with a depth head, FlowNetS for optical
-flow followed by depth from flow and the known translation (benchmark.flow), the same geometry fed
-with ground-truth flow (``oracle-flow``) and a constant depth (``constant``); the last two have no
-network. ``-tiny`` variants (1/8 width) exist for tests and smoke runs. Each network's training
-hyper-parameters are a :class:`Recipe`; ``benchmark.config.TrainConfig`` takes its defaults from
-:data:`DEPTH_RECIPE`, and a run of a method starts from that method's recipe.
+flow followed by depth from flow and the known translation (benchmark.core.flow), the same
+geometry fed with ground-truth flow (``oracle-flow``) and a constant depth (``constant``); the last
+two have no network. ``-tiny`` variants (1/8 width) exist for tests and smoke runs. Each
+network's training hyper-parameters are a ``Recipe`` (benchmark.core.config: TrainConfig's recipe
+fields, whose defaults are :data:`DEPTH_RECIPE`), and a run of a method starts from that
+method's recipe.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, replace
+from enum import Enum, auto
 
 from torch import nn
 
-from stillbox_gen.conventions import MAX_DEPTH, NOMINAL_SHIFT
+from stillbox_gen.conventions import MAX_DEPTH
 
+from .config import Recipe
 from .models import FLOW_DIV, DepthNet, FlowNetS
-
-
-@dataclass(frozen=True)
-class Recipe:
-    """Training hyper-parameters; the defaults are the thesis recipe at 64/128 px (REFERENCE §5).
-
-    ``milestones`` are fractions of the epoch count at which the learning rate is multiplied by
-    ``gamma`` (epochs 19, 30, 44, 53 of 55); ``loss_weights`` weigh the outputs finest (1/4)
-    to coarsest (1/64); the loss is multiplied by ``loss_scale``. ``momentum`` is SGD's momentum
-    or Adam's beta1; ``dampening`` is SGD's, ``beta2`` Adam's. ``shift``: the nominal frame
-    shift of the training pairs (the network answers for ``shift`` × metres per frame);
-    ``depth_range``: metres, training targets are clipped to it and a depth network's outputs
-    are clamped to it when scored or used (DepthNet: [0, 100] m, the clamped DepthNet of
-    thesis 6.4: [10, 60] m).
-    """
-
-    epochs: int = 55
-    batch_size: int = 256
-    lr: float = 1e-2
-    optimizer: str = "sgd"  # "sgd" (DepthNet recipe) or "adam" (public FlowNetS flow recipe)
-    momentum: float = 0.9
-    dampening: float = 0.9
-    beta2: float = 0.999
-    weight_decay: float = 4e-4
-    milestones: tuple[float, ...] = (19 / 55, 30 / 55, 44 / 55, 53 / 55)
-    gamma: float = 0.3
-    loss_weights: tuple[float, ...] = (0.32, 0.08, 0.02, 0.01, 0.005)
-    loss_scale: float = 1.0
-    shift: int = NOMINAL_SHIFT
-    depth_range: tuple[float, float] = (0.0, MAX_DEPTH)
-
 
 #: DepthNet's recipe (SGD, lr 0.01, momentum and dampening 0.9, weight decay 4e-4, batch 256,
 #: 55 epochs); depth networks are all trained with it (thesis Table 3.5).
@@ -65,8 +37,50 @@ FLOW_RECIPE = replace(DEPTH_RECIPE, optimizer="adam", lr=1e-4, loss_scale=1.0 / 
 CLAMPED_RECIPE = replace(DEPTH_RECIPE, shift=5, depth_range=(10.0, 60.0))
 THIN_WIDTH = 0.5  # channel multiplier of the thin clamped DepthNet (thesis 6.4: half the maps)
 
-#: what a method outputs: a depth network, a flow network (depth by geometry), or no network
-OUTPUTS = ("depth", "flow", "oracle-flow", "constant")
+
+class Target(Enum):
+    """What a method's network learns and outputs (the value: data.PairDataset's ``target``)."""
+
+    DEPTH = "depth"  # metres, multi-scale list as DepthNet; multi-scale L1 loss
+    FLOW = "flow"  # pixels of the input resolution, multi-scale list; multi-scale EPE loss
+
+
+class Scoring(Enum):
+    """How a method's depth is obtained when it is scored (evaluate.predict)."""
+
+    DEPTH = auto()  # the network's depth × |pair translation| / nominal displacement
+    FLOW = auto()  # depth from the network's flow and the known translation (core.flow)
+    EXACT_FLOW = auto()  # the same geometry fed with the exact (ground-truth) flow
+    CONSTANT = auto()  # the training split's median depth at every pixel
+
+
+@dataclass(frozen=True)
+class Kind:
+    """What a kind of method outputs, whether it trains and how it is scored.
+
+    ``name``: summary.json's ``output``; ``target``: what its network learns (None: no network,
+    nothing to build, train or load); ``scored_as``: how its depth is obtained when scored;
+    ``best_by``: the validation metric (a key of evaluate's summary) that picks ``best.pt``
+    (None without training).
+    """
+
+    name: str
+    target: Target | None
+    scored_as: Scoring
+    best_by: str | None = None
+
+    @property
+    def trains(self) -> bool:
+        """A network, trained by train.Trainer and saved in checkpoints."""
+        return self.target is not None
+
+
+DEPTH = Kind("depth", Target.DEPTH, Scoring.DEPTH, best_by="mae")
+FLOW = Kind("flow", Target.FLOW, Scoring.FLOW, best_by="epe")
+ORACLE_FLOW = Kind("oracle-flow", None, Scoring.EXACT_FLOW)
+CONSTANT = Kind("constant", None, Scoring.CONSTANT)
+#: every kind of method: a depth network, a flow network (depth by geometry), or no network
+KINDS = (DEPTH, FLOW, ORACLE_FLOW, CONSTANT)
 
 TINY_WIDTH = 0.125  # channel multiplier of the -tiny variants
 
@@ -76,22 +90,25 @@ class ModelSpec:
     """A registered method.
 
     ``build()`` returns a freshly initialised network, or is None for methods without one
-    (``oracle-flow``, ``constant``: nothing to train). ``output`` says what the network predicts
-    and how depth is obtained: "depth" (metres, multi-scale list as DepthNet), "flow" (pixels,
-    multi-scale list; depth from flow and the known translation), "oracle-flow" (ground-truth
-    flow through the same geometry), "constant" (the training set's median depth everywhere).
+    (``oracle-flow``, ``constant``: nothing to train). ``kind`` says what it outputs, whether it
+    trains and how its depth is scored (:class:`Kind`: DEPTH, FLOW, ORACLE_FLOW, CONSTANT).
     ``recipe``: its training hyper-parameters (None without a network).
     """
 
     name: str
     description: str
     build: Callable[[], nn.Module] | None
-    output: str = "depth"
+    kind: Kind = DEPTH
     recipe: Recipe | None = DEPTH_RECIPE
+
+    def __post_init__(self) -> None:
+        if (self.build is not None) != self.kind.trains or (self.recipe is None) == self.trainable:
+            raise ValueError(f"{self.name}: a network, a recipe and a training kind go together")
 
     @property
     def trainable(self) -> bool:
-        return self.build is not None
+        """A network to build and train (its kind trains)."""
+        return self.kind.trains
 
 
 def _specs() -> list[ModelSpec]:
@@ -135,28 +152,28 @@ def _specs() -> list[ModelSpec]:
             "flownets-flow",
             "FlowNetS (BN) for optical flow; depth from flow and the known translation",
             lambda: FlowNetS("flow", batch_norm=True),
-            "flow",
+            FLOW,
             FLOW_RECIPE,
         ),
         ModelSpec(
             "flownets-flow-tiny",
             f"flownets-flow {tiny}",
             lambda: FlowNetS("flow", width=TINY_WIDTH, batch_norm=True),
-            "flow",
+            FLOW,
             FLOW_RECIPE,
         ),
         ModelSpec(
             "oracle-flow",
             "ground-truth flow -> depth by the FOE geometry (checks geometry vs metadata)",
             None,
-            "oracle-flow",
+            ORACLE_FLOW,
             None,
         ),
         ModelSpec(
             "constant",
             "the training set's median depth at every pixel (the floor to beat)",
             None,
-            "constant",
+            CONSTANT,
             None,
         ),
     ]

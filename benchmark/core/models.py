@@ -16,7 +16,7 @@ features are (skip features, ``deconv`` output, upsampled raw prediction) concat
 
 Module names, order and shapes are those of the public DepthNet and FlowNetS code (and of this
 project's earlier checkpoints; tests/fixtures/models.json), so their state_dicts load with
-``load_state_dict(strict=True)``. The registry of methods is :mod:`benchmark.registry`.
+``load_state_dict(strict=True)``. The registry of methods is :mod:`benchmark.core.registry`.
 """
 
 from __future__ import annotations
@@ -172,7 +172,7 @@ class DepthNet(EncoderDecoder):
     Outputs are depth in metres, > 0 by "1 + ELU" (computed as ``F.elu(x) + 1``, which in float32
     rounds to exactly 0 for raw values below about -17), in train and eval mode (the public code
     returns only the finest map in eval mode and drops the channel axis). The clamped DepthNet of
-    thesis 6.4 is this network with a training recipe (benchmark.registry.CLAMPED_RECIPE): its
+    thesis 6.4 is this network with a training recipe (benchmark.core.registry.CLAMPED_RECIPE): its
     targets are clipped during training and its outputs clamped where it is used, not inside the
     network, where a clamp would zero the gradients of every pixel outside the range.
     """

@@ -8,7 +8,7 @@ random horizontal and vertical flips. Evaluation pairs are fixed forward pairs (
 target depth(i + shift). Inputs are (x/255 − 0.5)/0.2 per channel, frames stacked to 6 channels.
 Flow networks train on the same pairs with an optical-flow target (``target="flow"``): the exact
 flow of the static scene at the second frame's pixels towards the first frame, from the second
-frame's depth and the known translation (benchmark.flow).
+frame's depth and the known translation (benchmark.core.flow).
 
 Every random draw comes from ``numpy.random.default_rng([seed, epoch, index])``: the same seed
 gives the same batches whatever the worker count, and a resumed run continues the same sequence.

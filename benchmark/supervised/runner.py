@@ -4,8 +4,8 @@ Networks (``depth`` and ``flow`` outputs) are trained by train.Trainer, then the
 checkpoint is scored; methods without a network (``oracle-flow``, ``constant``) are scored
 directly. Either way the run folder gets ``config.json``, ``environment.json``,
 ``summary.json`` / ``summary.md``, ``per_sample.csv``, ``pixels.npz`` and ``plots/``, each written
-once, through benchmark.runfolder (docs/RUNS.md). Errors a user can fix are raised as ValueError
-with a one-line message.
+once, through benchmark.core.runfolder (docs/RUNS.md). Errors a user can fix are raised as
+ValueError with a one-line message.
 """
 
 from __future__ import annotations
@@ -20,33 +20,37 @@ import numpy as np
 from stillbox_gen.conventions import MAX_DEPTH, NOMINAL_SHIFT
 from stillbox_gen.lock import folder_lock
 
-from . import registry, report, runfolder
-from .checkpoint import load_checkpoint, load_weights
-from .config import EVAL_BATCH_SIZE, TrainConfig, default
-from .data import FrameStore, PairDataset, Scene, load_scenes, read_depth
+from ..core import registry, runfolder
+from ..core.checkpoint import load_checkpoint, load_weights, source_error
+from ..core.config import EVAL_BATCH_SIZE, TrainConfig, default
+from ..core.data import FrameStore, PairDataset, Scene, load_scenes, read_depth
+from ..core.device import resolve_device
+from ..core.errors import FieldError
+from . import report
 from .evaluate import EvalResult, Method, evaluate
-from .train import Trainer, environment, resolve_device, resumed_settings
+from .train import Trainer, environment, resumed_settings
 
 MEDIAN_FRAMES = 2000  # at most this many training frames (evenly spread) for the constant
 ORACLE_FLOW_NOISE_PX = 0.05  # oracle-flow is also scored with this much flow noise (sensitivity)
 
 
 def eval_split(
-    data: Path, split: str, shift: int, progress: bool, shift_source: str = "--shift"
+    data: Path, split: str, shift: int, progress: bool, ckpt: Path | None = None
 ) -> tuple[str, list, PairDataset]:
     """(split actually used, its scenes, eval-mode PairDataset); test falls back to val. A
-    ``shift`` (frames) not below the scenes' frame count is a ValueError naming
-    ``shift_source``, raised before any frame is read."""
+    ``shift`` (frames) not below the scenes' frame count is a FieldError on ``shift`` (on
+    ``ckpt`` when the shift is that checkpoint's), raised before any frame is read."""
     scenes = load_scenes(data, split)
     if not scenes and split == "test":
         split, scenes = "val", load_scenes(data, "val")
     if not scenes:
-        raise ValueError(f"--data: '{data}' has no scenes in split '{split}'")
+        raise FieldError("data", f"'{data}' has no scenes in split '{split}'")
     frames = min(s.frames for s in scenes)
     if shift >= frames:
-        raise ValueError(
-            f"{shift_source} {shift} is not below the {frames} frames of the scenes of '{data}'"
-        )
+        text = f"{shift} is not below the {frames} frames of the scenes of '{data}'"
+        if ckpt is not None:
+            raise source_error("ckpt", ckpt, f"its 'shift' {text}")
+        raise FieldError("shift", text)
     return split, scenes, PairDataset(FrameStore(scenes, progress=progress), "eval", shift)
 
 
@@ -55,7 +59,7 @@ def median_depth(scenes: list[Scene], max_frames: int = MEDIAN_FRAMES) -> tuple[
     to ``max_frames`` frames spread evenly over ``scenes``; returns (metres, frames used)."""
     frames = [(s, f) for s in scenes for f in range(len(s.depth))]
     if not frames:
-        raise ValueError("--data: no training scenes to take the median depth from")
+        raise FieldError("data", "no training scenes to take the median depth from")
     pick = np.unique(np.linspace(0, len(frames) - 1, min(max_frames, len(frames))).astype(int))
     values = [np.clip(read_depth(frames[i][0].depth[frames[i][1]]), 0, MAX_DEPTH) for i in pick]
     return float(np.median(np.concatenate([v.reshape(-1) for v in values]))), len(pick)
@@ -91,21 +95,21 @@ def score_checkpoint(
     ``out`` is created. ``split_data``: :func:`eval_split`'s answer for this split at the
     checkpoint's shift, when already read."""
     if batch_size < 1:
-        raise ValueError(f"--batch-size: must be at least 1, got {batch_size}")
+        raise FieldError("batch_size", f"must be at least 1, got {batch_size}")
     dev = resolve_device(device)
-    ck = load_checkpoint(ckpt, "--ckpt")
+    ck = load_checkpoint(ckpt, "ckpt")
     name = ck["model_name"]
     model = registry.build_model(name)
-    load_weights(model, ck, f"--ckpt {ckpt}", name)
+    load_weights(model, ck, "ckpt", ckpt, name)
     model.to(dev)
     shift = ck.get("shift", NOMINAL_SHIFT)
     if split_data is None or split_data[2].shift != shift:
-        split_data = eval_split(data, split, shift, progress, f"--ckpt {ckpt}: its 'shift'")
+        split_data = eval_split(data, split, shift, progress, ckpt)
     split, scenes, dataset = split_data
     depth_range = ck.get("depth_range", [0.0, MAX_DEPTH])
     clamp = registry.output_clamp(depth_range)
     method = Method(
-        registry.MODELS[name].output, model, ck["nominal_displacement"], depth_range=clamp
+        registry.MODELS[name].kind, model, ck["nominal_displacement"], depth_range=clamp
     )
     runfolder.make_folder(out)  # after every check, before the evaluation's minutes
     t0 = time.perf_counter()
@@ -142,8 +146,8 @@ def score_baseline(
         raise ValueError(f"{name}: a network; train it with 'run'")
     dev = resolve_device(device)
     info: dict = {"dataset": str(data)}
-    method = Method(spec.output)
-    if spec.output == "constant":
+    method = Method(spec.kind)
+    if spec.kind.scored_as is registry.Scoring.CONSTANT:
         method.constant, frames = median_depth(load_scenes(data, "train"))
         info["constant_depth"] = method.constant
         info["constant_rule"] = (
@@ -161,7 +165,7 @@ def score_baseline(
     info.update(split=split, scenes=len(scenes), shift=shift)
     info["eval_seconds"] = round(time.perf_counter() - t0, 2)
     extra, md = {}, ""
-    if spec.output == "oracle-flow":
+    if spec.kind.scored_as is registry.Scoring.EXACT_FLOW:
         extra, md = _oracle_sensitivity(dataset, dev, batch_size)
     return write_scores(out, name, result, info, extra, md)
 
@@ -171,7 +175,7 @@ def _oracle_sensitivity(dataset: PairDataset, dev, batch_size: int) -> tuple[dic
     and error by FOE distance) and the summary.md section showing how the geometry degrades
     near the FOE."""
     noisy = evaluate(
-        Method("oracle-flow", flow_noise=ORACLE_FLOW_NOISE_PX), dataset, dev, batch_size
+        Method(registry.ORACLE_FLOW, flow_noise=ORACLE_FLOW_NOISE_PX), dataset, dev, batch_size
     )
     bins = report.foe_bins(noisy.pixels["foe_distance"], noisy.pixels["abs_err"])
     extra = {
@@ -217,7 +221,7 @@ def train_config(model: str, data: Path, out: Path, **overrides) -> TrainConfig:
     recipe = dataclasses.asdict(registry.MODELS[model].recipe)
     cfg = TrainConfig(model=model, data=str(data), out=str(out), **recipe)
     if overrides.get("resume"):
-        last = load_checkpoint(runfolder.checkpoint_path(out, "last"), "--resume")
+        last = load_checkpoint(runfolder.checkpoint_path(out, "last"), "resume")
         cfg = dataclasses.replace(cfg, **resumed_settings(last))
     return dataclasses.replace(cfg, **{k: v for k, v in overrides.items() if v is not None})
 

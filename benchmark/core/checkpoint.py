@@ -4,7 +4,8 @@ Checkpoints are written by ``runfolder.save_checkpoint`` (``Trainer.checkpoint``
 goes in). Reading unpickles with ``torch.load(weights_only=True)``: tensors and plain data only.
 A file that is not such a checkpoint, whose weights do not fit the network, or whose numbers
 (displacement, shift, depth range, camera: :func:`check_metadata`) are unusable is a ValueError of
-one line naming the flag and the file.
+one line naming the file and the field it was given as (FieldError: ``ckpt``, ``resume``,
+``pretrained``; the command line names the flag).
 """
 
 from __future__ import annotations
@@ -14,14 +15,11 @@ import pickle
 import re
 import warnings
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import torch
 
 from . import registry
-
-if TYPE_CHECKING:
-    from .multishift import DepthScale
+from .errors import FieldError
 
 
 def first_line(e: Exception) -> str:
@@ -33,48 +31,62 @@ def first_line(e: Exception) -> str:
 CHECKPOINT_KEYS = ("model", "model_name", "nominal_displacement")
 
 
-def load_checkpoint(path: str | Path, flag: str | None = None) -> dict:
+def source_error(field: str | None, path: str | Path, *parts) -> ValueError:
+    """A one-line error about the file ``path`` given as ``field`` (e.g. "ckpt"): a FieldError,
+    or, without a field, a ValueError naming the file alone."""
+    if field:
+        return FieldError(field, *parts, where=f" {path}")
+    return ValueError(f"{path}: " + "".join(map(str, parts)))
+
+
+def load_checkpoint(path: str | Path, field: str | None = None) -> dict:
     """A checkpoint written by Trainer.checkpoint, unpickled with ``weights_only=True`` (tensors
     and plain data only: a file that would run code is refused, never executed).
 
-    Anything else raises ValueError with one line naming ``flag`` (e.g. "--ckpt") and the file.
+    Anything else raises a ValueError of one line naming the file and ``field`` (e.g. "ckpt":
+    :func:`source_error`).
     """
-    where = f"{flag} {path}" if flag else str(path)
     try:
         with warnings.catch_warnings():  # e.g. "Detected pickle protocol 4" for foreign pickles
             warnings.simplefilter("ignore")
             ck = torch.load(path, map_location="cpu", weights_only=True)
     except FileNotFoundError:
-        raise ValueError(f"{where}: no such checkpoint") from None
+        raise source_error(field, path, "no such checkpoint") from None
     except pickle.UnpicklingError as e:
         found = re.search(r"GLOBAL (\S+)", str(e))
         if found:
-            raise ValueError(
-                f"{where}: refused, it would run code or build objects other than tensors "
-                f"({found.group(1)}); only checkpoints written by stillbox-bench are loaded"
+            raise source_error(
+                field,
+                path,
+                "refused, it would run code or build objects other than tensors "
+                f"({found.group(1)}); only checkpoints written by stillbox-bench are loaded",
             ) from None
-        raise ValueError(
-            f"{where}: not a readable checkpoint (corrupt or not a torch file)"
+        raise source_error(
+            field, path, "not a readable checkpoint (corrupt or not a torch file)"
         ) from None
     except Exception as e:  # noqa: BLE001 - any reader failure is the file's fault
-        raise ValueError(f"{where}: not a readable checkpoint ({first_line(e)})") from None
+        raise source_error(field, path, f"not a readable checkpoint ({first_line(e)})") from None
     if isinstance(ck, dict) and ck and all(isinstance(v, torch.Tensor) for v in ck.values()):
-        raise ValueError(
-            f"{where}: a bare state_dict, not a stillbox-bench checkpoint (a dict with "
-            f"{', '.join(map(repr, CHECKPOINT_KEYS))}, as 'run' writes)"
+        raise source_error(
+            field,
+            path,
+            "a bare state_dict, not a stillbox-bench checkpoint (a dict with "
+            f"{', '.join(map(repr, CHECKPOINT_KEYS))}, as 'run' writes)",
         )
     if not isinstance(ck, dict) or not all(k in ck for k in CHECKPOINT_KEYS):
-        raise ValueError(
-            f"{where}: not a stillbox-bench checkpoint (expected a dict with "
-            f"{', '.join(map(repr, CHECKPOINT_KEYS))}, as 'run' writes)"
+        raise source_error(
+            field,
+            path,
+            "not a stillbox-bench checkpoint (expected a dict with "
+            f"{', '.join(map(repr, CHECKPOINT_KEYS))}, as 'run' writes)",
         )
     name = ck["model_name"]
     spec = registry.MODELS.get(name) if isinstance(name, str) else None
     if spec is None or not spec.trainable:
-        raise ValueError(f"{where}: unknown model name {name!r} in the checkpoint")
+        raise source_error(field, path, f"unknown model name {name!r} in the checkpoint")
     if not isinstance(ck["model"], dict):
-        raise ValueError(f"{where}: its 'model' entry is not a state_dict")
-    check_metadata(ck, where)
+        raise source_error(field, path, "its 'model' entry is not a state_dict")
+    check_metadata(ck, field, path)
     return ck
 
 
@@ -88,17 +100,17 @@ def _count(value) -> bool:
     return isinstance(value, int) and not isinstance(value, bool) and value >= 1
 
 
-def check_metadata(ck: dict, where: str) -> None:
+def check_metadata(ck: dict, field: str | None, path: str | Path) -> None:
     """The numbers a checkpoint's users rely on, checked once for every reader (eval, infer,
     eval-multishift, run --pretrained/--resume): ``nominal_displacement`` a finite number of
     metres > 0; optional ``shift`` an integer >= 1 (frames); ``depth_range`` [lo, hi] metres with
     0 <= lo < hi <= MAX_DEPTH; ``camera`` width and height integers >= 1 (pixels) and ``fov_deg``
-    in (0, 180) degrees. Otherwise a ValueError of one line naming ``where`` (flag and file) and
-    the field."""
+    in (0, 180) degrees. Otherwise a ValueError of one line naming the file ``path``, the
+    ``field`` it was given as (:func:`source_error`) and the checkpoint's entry."""
     from stillbox_gen.conventions import MAX_DEPTH
 
-    def bad(field: str, value, rule: str) -> ValueError:
-        return ValueError(f"{where}: its '{field}' is {value!r}; it must be {rule}")
+    def bad(entry: str, value, rule: str) -> ValueError:
+        return source_error(field, path, f"its '{entry}' is {value!r}; it must be {rule}")
 
     d0 = ck["nominal_displacement"]
     if not (_real(d0) and d0 > 0):
@@ -122,9 +134,12 @@ def check_metadata(ck: dict, where: str) -> None:
             raise bad("camera.fov_deg", fov, "a field of view in (0, 180) degrees")
 
 
-def load_weights(model: torch.nn.Module, ck: dict, where: str, name: str) -> None:
+def load_weights(
+    model: torch.nn.Module, ck: dict, field: str | None, path: str | Path, name: str
+) -> None:
     """``model.load_state_dict(ck["model"])`` for the network ``name``; weights that do not fit
-    raise a one-line ValueError naming ``where`` (flag and file) and the first misfit tensor."""
+    raise a one-line ValueError naming the file ``path`` given as ``field``
+    (:func:`source_error`) and the first misfit tensor."""
     own, theirs = model.state_dict(), ck["model"]
     shape = [
         k
@@ -146,64 +161,10 @@ def load_weights(model: torch.nn.Module, ck: dict, where: str, name: str) -> Non
             example = f"{(missing or unexpected)[0]} is {'missing' if missing else 'unexpected'}"
         source = ck.get("model_name")
         whose = "its weights" if source == name else f"weights of '{source}'"
-        raise ValueError(f"{where}: {whose} do not fit '{name}': {counts}; e.g. {example}")
+        raise source_error(field, path, f"{whose} do not fit '{name}': {counts}; e.g. {example}")
     try:
         model.load_state_dict(theirs)
     except (RuntimeError, TypeError, ValueError) as e:
-        raise ValueError(f"{where}: weights do not load into '{name}' ({first_line(e)})") from None
-
-
-def _training_camera(ck: dict, where: str) -> dict:
-    """The training camera ``{"width", "height", "fov_deg"}`` (pixels, pixels, horizontal
-    degrees): the checkpoint's ``camera`` entry, else its training dataset's (data.camera_of)."""
-    from .data import DataError, camera_of
-
-    cam = ck.get("camera")
-    if not isinstance(cam, dict):
-        data = (ck.get("config") or {}).get("data")
-        try:
-            return camera_of(str(data))
-        except (DataError, KeyError, TypeError):
-            raise ValueError(
-                f"{where}: no training camera (the checkpoint has none and its dataset "
-                f"'{data}' is not readable); give --train-fov DEG and --res WxH"
-            ) from None
-    return {"width": cam["width"], "height": cam["height"], "fov_deg": float(cam["fov_deg"])}
-
-
-def depth_network(
-    path: str | Path, flag: str = "--ckpt", camera: dict | None = None
-) -> tuple[torch.nn.Module, DepthScale, dict]:
-    """A depth network ready for inference: ``(model, scale, info)``.
-
-    ``model``: the checkpoint's network in eval mode on the CPU; ``scale``:
-    :class:`benchmark.multishift.DepthScale` with ``theta_max`` = the upper bound of the training
-    depth range (m; MAX_DEPTH unless the checkpoint has a ``depth_range``) and ``d0`` = its
-    nominal displacement (m); ``info``: the training camera (``width``, ``height`` in pixels,
-    ``fov_deg`` horizontal degrees; from the checkpoint's ``camera``, else from its training
-    dataset's dataset.json, else ``camera`` given here, which also overrides them),
-    ``depth_range`` [lo, hi] (m), ``clamp`` (the range outputs must be clamped to, None unless
-    narrower than [0, MAX_DEPTH]: registry.output_clamp) and ``model_name``. A checkpoint of a
-    method that does not output depth (flow networks) is refused: ValueError of one line naming
-    ``flag`` and the file.
-    """
-    from stillbox_gen.conventions import MAX_DEPTH
-
-    from .multishift import DepthScale
-
-    where = f"{flag} {path}"
-    ck = load_checkpoint(path, flag)
-    name = ck["model_name"]
-    output = registry.MODELS[name].output
-    if output != "depth":
-        raise ValueError(
-            f"{where}: '{name}' predicts {output}, not depth; give a depth network's checkpoint"
-        )
-    model = registry.build_model(name)
-    load_weights(model, ck, where, name)
-    model.eval()
-    lo, hi = (float(v) for v in ck.get("depth_range", (0.0, MAX_DEPTH)))  # load_checkpoint
-    d0 = float(ck["nominal_displacement"])  # checked them (check_metadata)
-    info = camera if camera is not None else _training_camera(ck, where)
-    info = {**info, "depth_range": [lo, hi], "clamp": registry.output_clamp((lo, hi))}
-    return model, DepthScale(theta_max=hi, d0=d0), {**info, "model_name": name}
+        raise source_error(
+            field, path, f"weights do not load into '{name}' ({first_line(e)})"
+        ) from None

@@ -1,0 +1,53 @@
+"""``stillbox-bench``: train, score and compare depth-from-motion models on stillbox-gen data.
+
+User mistakes print one line ``stillbox-bench: error: ...`` and exit with code 2.
+"""
+
+from __future__ import annotations
+
+import sys
+
+import click
+
+from . import supervised, video
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+def cli() -> None:
+    """Train and score depth-from-motion baselines on stillbox-gen datasets.
+
+    \b
+    stillbox-bench run depthnet --data data/stillbox-64      train -> evaluate -> report
+    stillbox-bench run oracle-flow --data data/stillbox-64   score a method without a network
+    stillbox-bench eval --ckpt runs/R/checkpoints/best.pt --data data/stillbox-64
+    stillbox-bench compare --data D --models depthnet,flownets-flow,oracle-flow,constant
+    stillbox-bench report runs/*                             one comparison table + figure
+    stillbox-bench speed                                     size and speed table
+    stillbox-bench infer --ckpt C --input flight.mp4 --speed 9 --out out/  depth of a video
+    stillbox-bench eval-multishift --ckpt C --data SEQ --out R  shift strategies on sequences
+    stillbox-bench list                                      registered models
+    """
+
+
+for command in (
+    supervised.list_cmd,
+    supervised.run,
+    supervised.eval_cmd,
+    supervised.report,
+    supervised.compare,
+    supervised.speed,
+    video.infer,
+    video.eval_multishift,
+):
+    cli.add_command(command)
+
+
+def main(argv: list[str] | None = None) -> None:
+    try:
+        cli.main(args=argv, prog_name="stillbox-bench", standalone_mode=False)
+    except click.ClickException as e:
+        click.echo(f"stillbox-bench: error: {e.format_message()}", err=True)
+        sys.exit(2)
+    except (click.exceptions.Abort, KeyboardInterrupt):
+        click.echo("stillbox-bench: interrupted; continue with --resume --out <run>", err=True)
+        sys.exit(130)

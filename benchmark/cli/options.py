@@ -1,0 +1,169 @@
+"""What every group of ``stillbox-bench`` commands shares: the one-line UserError (exit code 2),
+the --data and --device options and their checks, and small option parsers."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import click
+
+from stillbox_gen.conventions import default_root
+
+from ..core import registry
+from ..core.config import FLAGGED, check_settings
+from ..core.errors import FieldError
+from ..core.registry import CLAMPED_RECIPE, DEPTH_RECIPE
+
+if TYPE_CHECKING:
+    import torch
+
+
+class UserError(click.ClickException):
+    """A user's mistake: printed as one line ``stillbox-bench: error: ...``, exit code 2."""
+
+    exit_code = 2
+
+
+#: the default --data: stillbox-gen's default output at 64 px, and the command that makes it
+#: (the 3,000 scenes of the README's results)
+DEFAULT_DATA = default_root(64, 64)
+MAKE_DEFAULT_DATA = "stillbox-gen --res 64 --scenes 3000"
+
+
+def dataset_dir(data: Path) -> Path:
+    """``data`` when it holds a finished dataset; else a UserError naming --data (and, when the
+    folder is missing, the stillbox-gen command that makes it)."""
+    if not data.exists():
+        make = MAKE_DEFAULT_DATA if data == DEFAULT_DATA else f"{MAKE_DEFAULT_DATA} --out {data}"
+        raise UserError(f"--data: no dataset at '{data}'; make one with '{make}'")
+    if not (data / "manifest.parquet").is_file():
+        raise UserError(
+            f"--data: '{data}' is not a finished stillbox-gen dataset (no manifest.parquet)"
+        )
+    return data
+
+
+def torch_device(name: str) -> torch.device:
+    """--device resolved to a torch.device (UserError naming --device when unusable)."""
+    from ..core.device import resolve_device
+
+    try:
+        return resolve_device(name)
+    except ValueError as e:
+        raise user_error(e) from None
+
+
+def is_default(name: str) -> bool:
+    """True when the current command's option ``name`` was not given (its default applies)."""
+    source = click.get_current_context().get_parameter_source(name)
+    return source is click.core.ParameterSource.DEFAULT
+
+
+def model_names(value: str) -> list[str]:
+    """--models "a,b" -> registered names (UserError naming --models for unknown or none)."""
+    names = [n.strip() for n in value.split(",") if n.strip()]
+    unknown = [n for n in names if n not in registry.MODELS]
+    if not names or unknown:
+        raise UserError(
+            f"--models: unknown {', '.join(map(repr, unknown)) or 'empty list'} "
+            f"(registered: {', '.join(registry.list_models())})"
+        )
+    return names
+
+
+def int_option(flag: str, value: int, text: str):
+    """An integer option with a default shown in --help."""
+    return click.option(flag, type=int, default=value, show_default=True, help=text)
+
+
+DATA_OPTION = click.option(
+    "--data",
+    type=click.Path(path_type=Path),
+    default=DEFAULT_DATA,
+    show_default=True,
+    help=f"Dataset folder made by stillbox-gen (the default is made by '{MAKE_DEFAULT_DATA}').",
+)
+# ---------------------------------------------------------------- TrainConfig's settings
+
+_FIELDS = {f.name: f for f in FLAGGED}
+_TYPES = {"int": int, "float": float, "text": str}
+
+
+def _shown(value) -> str:
+    """A recipe value as --help shows it: 0.01, 55; a range as 10,60."""
+    return ",".join(f"{v:g}" for v in value) if isinstance(value, tuple) else f"{value:g}"
+
+
+def setting_option(name: str, command: str):
+    """The click option of TrainConfig field ``name`` in ``command`` ("run", "compare"), made
+    from the field's Flag; its value is passed as ``name``. A recipe field has no click default
+    (None: the model's recipe applies); another shows the field's default."""
+    field_, flag = _FIELDS[name], _FIELDS[name].metadata["flag"]
+    text, kw = flag.help[command], {"metavar": flag.metavar}
+    if flag.kind == "flag":
+        kw["is_flag"] = True
+    elif flag.kind == "path":
+        kw["type"] = click.Path(path_type=Path)
+    elif flag.kind in _TYPES:
+        kw["type"] = _TYPES[flag.kind]
+    if field_.metadata["recipe"]:
+        depth, clamped = (_shown(getattr(r, name)) for r in (DEPTH_RECIPE, CLAMPED_RECIPE))
+        text = text.format(depth=depth, clamped=clamped)
+    elif flag.kind != "flag":
+        kw.update(default=field_.default, show_default=field_.default is not None)
+    return click.option(flag.decl, name, help=text, **kw)
+
+
+def setting_options(command: str, order: tuple[str, ...] = ()):
+    """Every click option of TrainConfig's fields that ``command`` offers: the fields in
+    ``order`` first (in that order), then the others in TrainConfig's order."""
+    names = [f.name for f in FLAGGED if command in f.metadata["flag"].help]
+    names = [n for n in order if n in names] + [n for n in names if n not in order]
+
+    def decorate(function):
+        for name in reversed(names):  # the first option ends up first in --help
+            function = setting_option(name, command)(function)
+        return function
+
+    return decorate
+
+
+def flag_name(field: str) -> str:
+    """The flag of a library field: a TrainConfig field's own (``depth_range``: ``--clamp``),
+    else ``--`` and the field's name with dashes (``fixed_shift``: ``--fixed-shift``)."""
+    if field in _FIELDS:
+        return _FIELDS[field].metadata["flag"].name
+    return "--" + field.replace("_", "-")
+
+
+def user_error(e: ValueError, **flags: str) -> UserError:
+    """A library error in the command line's terms: a FieldError names flags, not fields
+    (:func:`flag_name`, or ``flags[field]`` for a command whose flag is not named after it)."""
+    if not isinstance(e, FieldError):
+        return UserError(str(e))
+    return UserError(e.worded(lambda field: flags.get(field) or flag_name(field)))
+
+
+def training_settings(o: dict) -> dict:
+    """TrainConfig values from a command's setting options ``o`` (by field name; None: the
+    default applies): checked against their rules and --device, then parsed. UserError
+    naming the flag."""
+    given = {name: value for name, value in o.items() if name in _FIELDS}
+    try:
+        check_settings(given)
+    except FieldError as e:
+        raise user_error(e) from None
+    torch_device(given["device"])
+    values = {}
+    for name, value in given.items():
+        parse = _FIELDS[name].metadata["flag"].parse
+        try:
+            values[name] = parse(value) if parse is not None and value is not None else value
+        except ValueError as e:
+            raise user_error(e) from None
+    return values
+
+
+DEVICE_OPTION = setting_option("device", "run")
+PREDICTIONS_OPTION = setting_option("save_predictions", "run")

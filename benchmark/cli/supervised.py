@@ -1,0 +1,422 @@
+"""``stillbox-bench`` commands of thesis chapter 3: list, run, eval, report, compare, speed."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import click
+
+from stillbox_gen.arguments import check_out_folder
+
+from ..core import registry
+from ..core.config import EVAL_BATCH_SIZE, default
+from ..core.models import count_parameters
+from ..core.runfolder import (
+    COMPARISON,
+    SUMMARY_JSON,
+    SUMMARY_MD,
+    checkpoint_path,
+    comparison_paths,
+    has_summary,
+)
+from ..supervised import speed as speed_table
+from .options import (
+    DATA_OPTION,
+    DEVICE_OPTION,
+    PREDICTIONS_OPTION,
+    UserError,
+    dataset_dir,
+    int_option,
+    is_default,
+    model_names,
+    setting_options,
+    torch_device,
+    training_settings,
+    user_error,
+)
+
+#: run's setting options in the --help order they have always had; a new TrainConfig setting
+#: with a flag needs no entry here: it follows them
+RUN_HELP_ORDER = (
+    "epochs", "max_steps", "batch_size", "lr", "device", "threads", "seed", "pretrained", "resume",
+    "ckpt_every", "log_every", "shift", "depth_range", "channels_last", "compile", "amp",
+    "save_predictions", "progress",
+)  # fmt: skip
+
+
+@click.command("list")
+def list_cmd() -> None:
+    """Registered models with their parameter counts."""
+    width = max(map(len, registry.list_models()))
+    for name in registry.list_models():
+        spec = registry.MODELS[name]
+        if spec.trainable:
+            n = f"{count_parameters(spec.build()) / 1e6:7.2f} M parameters"
+        else:
+            n = f"{'no network':>20s}"
+        click.echo(f"{name:{width}s} {n}  {spec.description}")
+
+
+@click.command()
+@click.argument("model")
+@DATA_OPTION
+@click.option(
+    "--out",
+    type=click.Path(path_type=Path),
+    help="Run folder.  [default: runs/<model>-<dataset>-<time>]  A folder holding "
+    "checkpoints/last.pt needs --resume (or another --out); the logs of a run killed before "
+    "its first checkpoint are replaced, as there is nothing to resume.",
+)
+@setting_options("run", RUN_HELP_ORDER)
+def run(model: str, data: Path, out: Path | None, **o) -> None:
+    """Train MODEL on the train split, then score the best checkpoint and write a report.
+
+    Methods without a network (oracle-flow, constant) are scored directly; training options are
+    ignored for them.
+    """
+    if model not in registry.MODELS:
+        known = ", ".join(registry.list_models())
+        raise UserError(f"MODEL: unknown '{model}' (registered: {known})")
+    data = dataset_dir(data)
+    trainable = registry.MODELS[model].trainable
+    if o["resume"] and (out is None or not checkpoint_path(out, "last").is_file()):
+        raise UserError(
+            "--resume: give the --out folder of an earlier run (with checkpoints/last.pt)"
+        )
+    if out is None:
+        out = Path("runs") / f"{model}-{data.resolve().name}-{time.strftime('%Y%m%d-%H%M%S')}"
+    check_out_folder(out, error=UserError)
+    if not o["resume"] and checkpoint_path(out, "last").exists():
+        raise UserError(f"--out: '{out}' already holds a run; add --resume or choose another --out")
+    if o["resume"] and is_default("seed"):
+        o["seed"] = None  # the run's own (runner.train_config)
+    settings = training_settings(o)  # --clamp's range and --shift: Trainer.setup
+    if o["pretrained"] is not None and not o["pretrained"].is_file():
+        raise UserError(f"--pretrained: no such file '{o['pretrained']}'")
+    if not trainable and (o["pretrained"] or o["resume"]):
+        raise UserError(f"MODEL: '{model}' has no network (no --pretrained or --resume)")
+    summary = _run_one(model, data, out, settings)
+    if summary is None:
+        return
+    m = summary["metrics"]
+    epe = f", EPE {m['epe']:.3f} px" if "epe" in m else ""
+    click.echo(
+        f"{model}: MAE {m['mae']:.3f} m, MRE {m['mre']:.3f}, MLE {m['mle']:.3f}, "
+        f"depth error {m['depth_error']:.3f} m{epe} on {summary['split']} "
+        f"({m['images']} pairs); report in {out / SUMMARY_MD}"
+    )
+
+
+def _run_one(model: str, data: Path, out: Path, settings: dict) -> dict | None:
+    """runner.run_method with TrainConfig ``settings`` from the command line (training_settings;
+    those a command lacks take TrainConfig's defaults); ValueError -> UserError."""
+    from ..supervised.runner import run_method
+
+    try:
+        return run_method(model, data, out, **settings)
+    except ValueError as e:
+        raise user_error(e) from None
+
+
+@click.command("eval")
+@click.option(
+    "--ckpt",
+    type=click.Path(path_type=Path),
+    required=True,
+    help="Checkpoint (.pt) written by 'run'.",
+)
+@DATA_OPTION
+@click.option(
+    "--split",
+    type=click.Choice(["train", "val", "test"]),
+    default="test",
+    show_default=True,
+    help="Split to score (test falls back to val when empty).",
+)
+@click.option(
+    "--out",
+    type=click.Path(path_type=Path),
+    help="Report folder.  [default: <ckpt folder>/../eval-<dataset>-<split>]",
+)
+@int_option("--batch-size", EVAL_BATCH_SIZE, "Pairs per forward pass (does not change results).")
+@DEVICE_OPTION
+@PREDICTIONS_OPTION
+def eval_cmd(
+    ckpt: Path,
+    data: Path,
+    split: str,
+    out: Path | None,
+    batch_size: int,
+    device: str,
+    save_predictions: bool,
+) -> None:
+    """Score a checkpoint on a dataset split (writes summary.json/.md, per_sample.csv, plots)."""
+    if not ckpt.is_file():
+        raise UserError(f"--ckpt: no such file '{ckpt}'")
+    data = dataset_dir(data)
+    out = out or ckpt.resolve().parent.parent / f"eval-{data.resolve().name}-{split}"
+    check_out_folder(out, error=UserError)
+    from ..supervised.runner import score_checkpoint
+
+    try:  # checks the checkpoint and the data before anything is written to --out
+        s = score_checkpoint(ckpt, data, split, out, device, batch_size, save_predictions)
+    except ValueError as e:
+        raise user_error(e) from None
+    m = s["metrics"]
+    click.echo(
+        f"{s['model']}: MAE {m['mae']:.3f} m, MRE {m['mre']:.3f}, MLE {m['mle']:.3f} on "
+        f"{s['split']} ({m['images']} pairs); report in {out / SUMMARY_MD}"
+    )
+
+
+@click.command()
+@click.argument("runs", nargs=-1, required=True, type=click.Path(path_type=Path))
+@click.option(
+    "--out",
+    type=click.Path(path_type=Path),
+    default=Path("report"),
+    show_default=True,
+    help="Writes OUT.md, OUT.csv and OUT-error_vs_foe_distance.png.",
+)
+def report(runs: tuple[Path, ...], out: Path) -> None:
+    """One comparison table (markdown + CSV) of several runs' summary.json, and one figure of
+    error vs distance to the focus of expansion with every run on it."""
+    from ..supervised.report import write_comparison
+
+    missing = [str(r) for r in runs if not has_summary(r)]
+    if missing:
+        raise UserError(f"RUNS: no {SUMMARY_JSON} in {', '.join(missing)}")
+    try:
+        click.echo(write_comparison(list(runs), out))
+    except ValueError as e:  # an unreadable summary.json or pixels.npz, or an --out not made
+        raise user_error(e) from None
+
+
+@click.command()
+@DATA_OPTION
+@click.option(
+    "--models",
+    "names",
+    default="depthnet,flownets-depth,flownets-flow,oracle-flow,constant",
+    show_default=True,
+    help="Comma-separated registered methods.",
+)
+@click.option(
+    "--out",
+    type=click.Path(path_type=Path),
+    help="Folder: one run folder per method + comparison.{md,csv} and the FOE figure.  "
+    "[default: runs/compare-<dataset>-<time>]",
+)
+@setting_options("compare")
+def compare(data: Path, names: str, out: Path | None, **o) -> None:
+    """Run every method of --models on --data (reusing finished runs in --out), then write one
+    comparison table and one error-vs-FOE-distance figure with every method."""
+    chosen = model_names(names)
+    data = dataset_dir(data)
+    settings = training_settings(o)
+    if out is None:
+        out = Path("runs") / f"compare-{data.resolve().name}-{time.strftime('%Y%m%d-%H%M%S')}"
+    check_out_folder(out, error=UserError)
+    runs = []
+    for name in chosen:
+        run_dir = out / name
+        if has_summary(run_dir):
+            click.echo(f"{name}: reusing {run_dir}")
+        else:
+            if checkpoint_path(run_dir, "last").exists():
+                raise UserError(
+                    f"--out: '{run_dir}' holds an unfinished run; finish it with "
+                    f"'stillbox-bench run {name} --resume --out {run_dir}' or remove it"
+                )
+            click.echo(f"{name}: running into {run_dir}")
+            _run_one(name, data, run_dir, settings)
+        runs.append(run_dir)
+    from ..supervised.report import write_comparison
+
+    click.echo(write_comparison(runs, out / COMPARISON))
+    click.echo(f"comparison in {comparison_paths(out / COMPARISON)['md']}")
+
+
+def _int_list(option: str, value: str) -> tuple[int, ...]:
+    try:
+        values = tuple(int(v) for v in value.split(",") if v.strip())
+    except ValueError:
+        raise UserError(f"{option}: expected comma-separated integers, got '{value}'") from None
+    if not values or any(v < 64 or v % 64 for v in values):
+        raise UserError(f"{option}: sizes must be positive multiples of 64, got '{value}'")
+    return values
+
+
+@click.command()
+@click.option(
+    "--models",
+    "names",
+    default=None,
+    help="Comma-separated registered networks. [default: "
+    + ",".join(speed_table.DEFAULT_MODELS)
+    + "; with --train: "
+    + ",".join(speed_table.TRAIN_MODELS)
+    + "]",
+)
+@click.option(
+    "--train",
+    is_flag=True,
+    help="Time training steps instead (forward, loss, backward, optimiser step): samples/s at "
+    "--batches, on --data's training pairs or random batches at --time-res px.",
+)
+@click.option(
+    "--batches",
+    default=",".join(map(str, speed_table.TRAIN_BATCHES)),
+    show_default=True,
+    help="--train: comma-separated batch sizes.",
+)
+@click.option(
+    "--data",
+    type=click.Path(path_type=Path),
+    default=None,
+    help="--train: time on this dataset's training pairs (default: random inputs and targets).",
+)
+@click.option(
+    "--baseline",
+    is_flag=True,
+    help="--train: also time the step with the speed levers off, alternating in the same run.",
+)
+@click.option(
+    "--compile",
+    "compile_",
+    is_flag=True,
+    help="--train: torch.compile the network (levers-on rows).",
+)
+@click.option(
+    "--resolutions",
+    default=",".join(map(str, speed_table.DEFAULT_MAC_SIZES)),
+    show_default=True,
+    help="Square input sizes (px) for the GMAC columns.",
+)
+@int_option(
+    "--time-res",
+    speed_table.DEFAULT_TIME_SIZE,
+    "Square input size (px) of the latency/throughput measurements.",
+)
+@int_option(
+    "--warmup",
+    speed_table.DEFAULT_WARMUP,
+    "Untimed passes first (--train: steps; default 24 samples' worth, at least 1).",
+)
+@int_option(
+    "--repeats",
+    speed_table.DEFAULT_REPEATS,
+    "Timed passes (median) (--train: steps; default 160 samples' worth, at least 3).",
+)
+@DEVICE_OPTION
+@int_option("--threads", default("threads"), "Torch CPU threads.")
+@click.option(
+    "--out",
+    type=click.Path(path_type=Path),
+    default=Path("runs") / "speed",
+    show_default=True,
+    help="Folder of the CSV (named after device, threads and torch version).",
+)
+def speed(
+    names: str | None,
+    train: bool,
+    batches: str,
+    data: Path | None,
+    baseline: bool,
+    compile_: bool,
+    resolutions: str,
+    time_res: int,
+    warmup: int,
+    repeats: int,
+    device: str,
+    threads: int,
+    out: Path,
+) -> None:
+    """Parameters, GMACs, batch-1 latency and batch-8 throughput of each network (Table 3.6);
+    with --train, samples/s of training steps."""
+    import torch
+
+    if train:
+        return _train_speed(
+            names, batches, data, baseline, compile_, time_res, device, threads, out
+        )
+    chosen = model_names(names or ",".join(speed_table.DEFAULT_MODELS))
+    no_net = [n for n in chosen if not registry.MODELS[n].trainable]
+    if no_net:
+        raise UserError(f"--models: {', '.join(no_net)} ha(s) no network to time")
+    sizes = _int_list("--resolutions", resolutions)
+    _int_list("--time-res", str(time_res))
+    if warmup < 0 or repeats < 1:
+        raise UserError("--warmup must be >= 0 and --repeats >= 1")
+    check_out_folder(out, error=UserError)
+    dev = torch_device(device)
+    if threads > 0:
+        torch.set_num_threads(threads)
+    rows = speed_table.measure(chosen, dev, sizes, time_res, warmup=warmup, repeats=repeats)
+    path = out / speed_table.csv_name(dev)
+    speed_table.write_csv(rows, path)
+    click.echo(
+        f"device {dev}, {torch.get_num_threads()} threads, torch {torch.__version__}; "
+        f"timing at {time_res} px, median of {repeats} after {warmup} warm-up passes"
+    )
+    click.echo(speed_table.markdown(rows))
+    click.echo(f"written to {path}")
+
+
+def _train_speed(names, batches, data, baseline, compile_, time_res, device, threads, out) -> None:
+    """speed --train: samples/s of training steps (benchmark.supervised.train_speed)."""
+    import torch
+
+    from ..core.data import DataError
+    from ..supervised import train_speed
+
+    chosen = model_names(names or ",".join(speed_table.TRAIN_MODELS))
+    no_net = [n for n in chosen if not registry.MODELS[n].trainable]
+    if no_net:
+        raise UserError(f"--models: {', '.join(no_net)} ha(s) no network to train")
+    try:
+        sizes = tuple(int(v) for v in batches.split(",") if v.strip())
+    except ValueError:
+        sizes = ()
+    if not sizes or min(sizes) < 1:
+        raise UserError(f"--batches: expected comma-separated positive integers, got '{batches}'")
+    _int_list("--time-res", str(time_res))
+    ctx = click.get_current_context()
+    given = {
+        k: ctx.params[k]
+        for k in ("warmup", "repeats")
+        if ctx.get_parameter_source(k) is not click.core.ParameterSource.DEFAULT
+    }
+    if given.get("warmup", 0) < 0 or given.get("repeats", 1) < 1:
+        raise UserError("--warmup must be >= 0 and --repeats >= 1")
+    if data is not None and not data.is_dir():
+        raise UserError(f"--data: '{data}' is not a dataset folder")
+    check_out_folder(out, error=UserError)
+    dev = torch_device(device)
+    if threads > 0:
+        torch.set_num_threads(threads)
+    try:
+        rows = train_speed.measure(
+            chosen,
+            dev,
+            sizes,
+            data,
+            time_res,
+            baseline,
+            compile_,
+            given.get("warmup"),
+            given.get("repeats"),
+        )
+    except (ValueError, DataError) as e:
+        raise user_error(e) from None
+    path = out / train_speed.train_csv_name(dev)
+    speed_table.write_csv(rows, path)
+    source = f"training pairs of {data}" if data is not None else "random inputs and targets"
+    click.echo(
+        f"training step (data, forward, loss, backward, optimiser step) on {source}; "
+        f"device {dev}, {torch.get_num_threads()} threads, torch {torch.__version__}; median "
+        "step time after warm-up" + ("; levers off = baseline, alternating" if baseline else "")
+    )
+    click.echo(train_speed.markdown(rows))
+    click.echo(f"written to {path}")
