@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import importlib.util
 import json
 import multiprocessing
 import os
@@ -116,6 +117,19 @@ def find_gpus() -> dict[str, list[str]]:
         raise RuntimeError(str(e)) from None
 
 
+NO_BLENDER = (
+    "rendering needs Blender as a Python module (bpy 5.0.1, Python 3.11): "
+    "pip install 'stillbox-gen[gen]'"
+)
+
+
+def require_blender() -> None:
+    """A ConfigError (one line) when bpy is not installed, before anything is written: the
+    reader and the benchmark install without it (the `bench` extra), the renderer does not."""
+    if importlib.util.find_spec("bpy") is None:
+        raise ConfigError(NO_BLENDER)
+
+
 def choose_device(choice: str, backend: str = "local") -> tuple[str, str]:
     """The Cycles device of ``--device CHOICE`` (config.DEVICES) and a one-line report of it,
     e.g. ("CPU", "render device: CPU (no GPU backend found by Cycles)").
@@ -124,6 +138,7 @@ def choose_device(choice: str, backend: str = "local") -> tuple[str, str]:
     backend without a device is a ConfigError naming --device. Ray actors (``backend`` "ray")
     render on CPUs: "auto" gives the CPU there without looking, a GPU backend is refused.
     """
+    require_blender()
     if choice == "cpu":
         return CPU_DEVICE, f"render device: {CPU_DEVICE}"
     if backend == "ray":

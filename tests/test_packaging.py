@@ -37,3 +37,33 @@ def test_blender_and_torch_are_extras_not_base_dependencies():
     assert extras["gen"] == {"bpy"}
     assert {"torch", "kornia", "tensorboard"} <= extras["bench"]
     assert "bpy" not in extras["bench"]
+
+
+def _without_bpy(monkeypatch) -> None:
+    """Make bpy look uninstalled in this process (it is, in .venv-bench)."""
+    real = importlib.util.find_spec
+    monkeypatch.setattr(
+        importlib.util, "find_spec", lambda name, *a: None if name == "bpy" else real(name, *a)
+    )
+
+
+def test_rendering_without_blender_is_a_one_line_error_naming_the_extra(tmp_path, monkeypatch):
+    """generate needs bpy: without it, one line naming the `gen` extra, before anything is
+    written."""
+    from conftest import assert_user_error, invoke_cli
+
+    _without_bpy(monkeypatch)
+    out = tmp_path / "d"
+    assert_user_error(invoke_cli("--res", "64", "--scenes", "1", "--out", out), "[gen]", "bpy")
+    assert not out.exists()
+
+
+def test_stats_reads_without_blender_but_flicker_renders(default_dataset, tmp_path, monkeypatch):
+    from conftest import assert_user_error, invoke_cli
+
+    _without_bpy(monkeypatch)
+    out = tmp_path / "stats"
+    assert_user_error(invoke_cli("stats", default_dataset, "--flicker", "1", "--out", out), "[gen]")
+    assert not out.exists()
+    assert invoke_cli("stats", default_dataset, "--scenes", "2", "--out", out).returncode == 0
+    assert (out / "stats.json").is_file()

@@ -11,6 +11,7 @@ from ..arguments import check_out_folder
 from ..conventions import MAX_DEPTH, NOMINAL_SHIFT
 from ..dataset import Dataset
 from ..errors import ConfigError
+from ..workers import require_blender
 from .flicker import check_photos, config_of, flicker_stats
 from .measure import check_numbers, dataset_stats
 from .report import plot
@@ -48,6 +49,7 @@ def run(
     _check_out_folder(out)
     if flicker:
         # before measuring: they are re-rendered
+        require_blender()
         check_photos(config_of(ds).materials, ds.scenes(limit=flicker), ds.root)
     stats = dataset_stats(ds, scenes, shift, max_depth, progress)
     stats["flicker"] = flicker_stats(ds, flicker, progress) if flicker else None
