@@ -8,6 +8,7 @@ A click command object (:data:`toy`) for ``benchmark.cli`` to register. User mis
 from __future__ import annotations
 
 import json
+import math
 import time
 from pathlib import Path
 
@@ -34,6 +35,22 @@ def _load(option: str, root: Path, name: str) -> study.ToyScene:
         return study.load_scene(root, name)
     except (study.ToyDataError, OSError) as e:
         raise click.UsageError(f"{option}: {e} (render it with '{make}')") from None
+
+
+def _grid_option(flag: str, text: str | None) -> tuple[float, ...] | None:
+    """``"0.1,1,10"`` -> (0.1, 1.0, 10.0); a UsageError naming ``flag`` unless positive
+    finite numbers."""
+    if text is None:
+        return None
+    try:
+        values = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        raise click.UsageError(
+            f"{flag}: expected numbers separated by commas, got '{text}'"
+        ) from None
+    if not all(math.isfinite(v) and v > 0 for v in values):
+        raise click.UsageError(f"{flag}: values must be positive and finite, got '{text}'")
+    return values
 
 
 def _positive(flag: str, value: int | None) -> None:
@@ -120,6 +137,18 @@ def _summary(results: dict, seconds: float) -> str:
     f"{study.ODM_EVERY}; --quick: {study.QUICK_ODM_EVERY}]",
 )
 @click.option(
+    "--lambdas",
+    help="Comma-separated λ grid (smooth-loss weights).  [default: "
+    + ",".join(f"{v:g}" for v in study.LAMBDAS)
+    + "]",
+)
+@click.option(
+    "--kappas",
+    help="Comma-separated κ grid (edge sensitivities).  [default: "
+    + ",".join(f"{v:g}" for v in study.KAPPAS)
+    + "]",
+)
+@click.option(
     "--quick",
     is_flag=True,
     help=f"A {len(study.QUICK_LAMBDAS)}x{len(study.QUICK_KAPPAS)} (λ, κ) grid and "
@@ -138,6 +167,8 @@ def toy_cmd(
     out: Path,
     iterations: int | None,
     odm_every: int | None,
+    lambdas: str | None,
+    kappas: str | None,
     quick: bool,
     device: str,
     quiet: bool,
@@ -163,6 +194,8 @@ def toy_cmd(
     )
     if odm_every is not None:
         cfg.odm_every = odm_every
+    cfg.lambdas = _grid_option("--lambdas", lambdas) or cfg.lambdas
+    cfg.kappas = _grid_option("--kappas", kappas) or cfg.kappas
     scenes = [_load("--horizon", horizon, "horizon"), _load("--flower", flower, "flower")]
     try:
         out = runfolder.make_folder(out)
