@@ -593,3 +593,40 @@ def table_markdown(results: dict) -> str:
         "",
     ]
     return "\n".join(head + lines)
+
+
+def measure(
+    scenes: Sequence[ToyScene], cfg: StudyConfig, iterations: int = 3
+) -> dict[str, dict[str, float]]:
+    """Seconds per iteration of each loss's full batch (``len(scenes)`` × grid points), wall
+    and process CPU time, after one warm-up iteration; ``"photometric"`` alone; and one ODM
+    call on the whole batch (``"odm"``, both references). With the ODM every k iterations an
+    iteration costs ``loss + odm / k``."""
+    lam, kap = grid(cfg)
+    problem = Problem(list(scenes), lam, kap)
+    out = {}
+    for loss in (None, *cfg.losses):
+        optimise(problem, loss, 1)
+        run = optimise(problem, loss, iterations)
+        out[loss or "photometric"] = {
+            "wall": run.seconds / iterations,
+            "cpu": run.cpu_seconds / iterations,
+        }
+    depth = torch.full_like(problem.truth, START_DEPTH)
+    t0, c0 = time.perf_counter(), time.process_time()
+    problem.occlusions(depth)
+    out["odm"] = {"wall": time.perf_counter() - t0, "cpu": time.process_time() - c0}
+    return out
+
+
+def extrapolate(per_iteration: dict[str, dict[str, float]], cfg: StudyConfig, key: str) -> float:
+    """Seconds of the whole study of ``cfg`` from :func:`measure`'s ``key`` ("wall" or "cpu")
+    times, the photometric-only run counted as one loss run (it is 1 grid point, not G)."""
+    odm = per_iteration["odm"][key] / cfg.odm_every
+    total = 0.0
+    for loss in cfg.losses:
+        for on in cfg.odm:
+            total += per_iteration[loss][key] + (odm if on else 0.0)
+    points = len(cfg.lambdas) * len(cfg.kappas)
+    total += per_iteration["photometric"][key] / points
+    return total * cfg.iterations
