@@ -29,6 +29,8 @@ from .toy import SCENES, BestRun, ToyScene, run_key, scene_warps
 #: Colour scale of the depth panels (metres, log) and of the log-error panels.
 DEPTH_RANGE = (1.0, MAX_DEPTH)
 LOG_ERROR_MAX = 1.0
+#: Resolution of the panel figures (200 px frames drawn at about their own size).
+PANEL_DPI = 60
 
 
 def heatmaps_figure(results: dict, odm: bool) -> Figure:
@@ -97,7 +99,7 @@ def panels_figure(scene: ToyScene, runs: Sequence[BestRun], title: str) -> Figur
 
 def panels(scene: ToyScene, runs: Sequence[BestRun], title: str, path: str | os.PathLike) -> None:
     """:func:`panels_figure` written to ``path``."""
-    _save(panels_figure(scene, runs, title), path)
+    _save(panels_figure(scene, runs, title), path, dpi=PANEL_DPI)
 
 
 def le_curves_figure(runs: Sequence[BestRun], le0: dict[str, float]) -> Figure:
