@@ -19,6 +19,7 @@ from stillbox_gen.formats import atomic_write_text
 
 from . import runfolder, toy_plots
 from . import toy as study
+from .reprojection import SMOOTH_LOSSES
 
 RESULTS_JSON = "results.json"
 TABLE_MD = "table.md"
@@ -51,6 +52,19 @@ def _grid_option(flag: str, text: str | None) -> tuple[float, ...] | None:
     if not all(math.isfinite(v) and v > 0 for v in values):
         raise click.UsageError(f"{flag}: values must be positive and finite, got '{text}'")
     return values
+
+
+def _losses_option(text: str | None) -> tuple[str, ...] | None:
+    """``"diffusion,tv"`` -> ("diffusion", "tv"); a UsageError naming --losses for an unknown
+    name."""
+    if text is None:
+        return None
+    names = tuple(n.strip() for n in text.split(","))
+    unknown = [n for n in names if n not in SMOOTH_LOSSES]
+    if unknown or not names:
+        known = ", ".join(SMOOTH_LOSSES)
+        raise click.UsageError(f"--losses: unknown loss '{','.join(unknown)}' (known: {known})")
+    return names
 
 
 def _positive(flag: str, value: int | None) -> None:
@@ -148,6 +162,7 @@ def _summary(results: dict, seconds: float) -> str:
     + ",".join(f"{v:g}" for v in study.KAPPAS)
     + "]",
 )
+@click.option("--losses", help="Comma-separated smooth losses to run.  [default: all six]")
 @click.option(
     "--quick",
     is_flag=True,
@@ -177,6 +192,7 @@ def toy_cmd(
     odm_every: int | None,
     lambdas: str | None,
     kappas: str | None,
+    losses: str | None,
     quick: bool,
     device: str,
     threads: int,
@@ -207,6 +223,7 @@ def toy_cmd(
         cfg.odm_every = odm_every
     cfg.lambdas = _grid_option("--lambdas", lambdas) or cfg.lambdas
     cfg.kappas = _grid_option("--kappas", kappas) or cfg.kappas
+    cfg.losses = _losses_option(losses) or cfg.losses
     scenes = [_load("--horizon", horizon, "horizon"), _load("--flower", flower, "flower")]
     try:
         out = runfolder.make_folder(out)

@@ -88,6 +88,7 @@ def test_missing_dataset_names_the_option_and_the_command_that_renders_it(tmp_pa
     [
         (("--lambdas", "1,x"), "--lambdas"),
         (("--kappas", "0.3,-1"), "--kappas"),
+        (("--losses", "diffusion,blur"), "--losses"),
         (("--iterations", "0"), "--iterations"),
         (("--odm-every", "0"), "--odm-every"),
         (("--device", "tpu"), "--device"),
