@@ -1,0 +1,632 @@
+"""The toy-problem study of thesis §4.6 (Table 4.1, Figs. 4.13-4.18): depth maps optimised
+directly by reprojection, with each smooth loss over a log grid of (λ, κ), ODM off and on.
+
+Each toy scene (``stillbox-gen --preset toy-flower`` / ``toy-horizon``) has three frames; the
+centre frame's depth map θ is the parameter (one value per pixel, metres), started at the
+background depth (10 m, Fig. 4.11) and optimised from frames t-1 and t+1 with
+
+    L(θ) = L_p(θ) + λ·L_s(ξ = 1/θ, κ)                                   (§4.6.2)
+
+where ``L_p`` is the plain L1 photometric loss (α = 0, §4.7.3: "for our toy examples, we only
+used the simple photometric loss"), summed over the two references, each over its valid pixels
+(minus the pixels the occlusion detection module finds occluded when the ODM is on), and ``L_s``
+one of the six smooth losses of :data:`benchmark.reprojection.SMOOTH_LOSSES`.
+
+Batching: every grid point of one smooth loss and both scenes are optimised together, as one
+batch of ``scenes × grid points`` independent depth maps (:class:`Problem`). Losses are per
+sample and summed, and Adam is element-wise, so each sample follows exactly the trajectory it
+would follow alone (a test checks it).
+
+Choices the thesis leaves open (all in constants below):
+
+- Optimiser: Adam (β = 0.9, 0.999), learning rate 0.15. §4.6 gives only the learning rate; Adam
+  is what the thesis uses for its unsupervised trainings (§5.3.1), and a step of 0.15 on a loss
+  that is a mean over 40,000 pixels is only meaningful for a scale-free optimiser (plain SGD
+  would move each depth by ~1e-5 m per step).
+- The parameters are depths (§4.6.2: "the training parameters are depth values"), projected
+  back into [MIN_DEPTH, MAX_DEPTH] = [0.1, 100] m after every step (the benchmark's depth range,
+  thesis §3.6.2), so that ξ stays finite.
+- LE: the mean logarithmic error ``mean |log θ − log θ̃|`` over the pixels whose true depth is
+  within MAX_DEPTH (Fig. 4.13's "mean logarithmic error"; the sky of Horizon, and the ground
+  beyond 100 m, have no usable true depth and are left out).
+- The ODM mask (``occlusion_mask``, "warp back", dilation 2) is recomputed from the current
+  depth every :data:`ODM_EVERY` iterations (the ODM costs ~2000 photometric iterations' worth
+  per call otherwise); the thesis does not say how often it ran it.
+- ΔM (the thesis' "robustness index", undefined there): see :func:`robustness`.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from stillbox_gen.conventions import MAX_DEPTH
+from stillbox_gen.dataset import Dataset
+
+from .metrics import MIN_DEPTH
+from .reprojection import SMOOTH_LOSSES, inverse_warp, occlusion_mask, photometric_loss
+
+#: The two toy scenes in Table 4.1's order of columns, and the preset that renders each.
+SCENES = ("horizon", "flower")
+PRESETS = {"horizon": "toy-horizon", "flower": "toy-flower"}
+#: Frame whose depth is optimised, and its two references (t-1, t+1).
+CENTRE = 1
+REFERENCES = (0, 2)
+#: Start depth, metres: the background depth of both scenes (Fig. 4.11 caption).
+START_DEPTH = 10.0
+LEARNING_RATE = 0.15
+ITERATIONS = 10_000
+#: Iterations between two computations of the ODM mask (see the module doc).
+ODM_EVERY = 10
+#: LE is recorded every ITERATIONS // HISTORY_POINTS iterations (for the LE-vs-time curves).
+HISTORY_POINTS = 100
+#: The log grids (half a decade apart), wide enough to hold every optimum of Table 4.1.
+LAMBDAS = (0.1, 0.3, 1.0, 3.0, 10.0, 30.0, 100.0)
+KAPPAS = (0.03, 0.1, 0.3, 1.0, 3.0)
+#: --quick: a 2x2 grid and a few iterations, for CI.
+QUICK_LAMBDAS = (1.0, 30.0)
+QUICK_KAPPAS = (0.3, 1.0)
+QUICK_ITERATIONS = 20
+QUICK_ODM_EVERY = 5
+#: ODM masks are computed for this many samples at once (the direct warp's memory grows with
+#: the square of the largest projected square, up to 16² copies of the batch).
+ODM_CHUNK = 8
+
+#: Thesis Table 4.1, copied: per loss, (ODM off, ODM on) rows of the values named by
+#: THESIS_KEYS (κ, λ, M, ΔM, LE Horizon, LE Flower).
+THESIS_KEYS = ("kappa", "lambda", "m", "delta_m", "horizon", "flower")
+THESIS_TABLE_4_1: dict[str, tuple[tuple[float, ...], tuple[float, ...]]] = {
+    "tv": ((1, 1, 0.34, 0.45, 0.37, 0.48), (0.1, 1, 0.63, 0.44, 0.36, 0.24)),
+    "tvv": ((3, 1, 0.36, 0.31, 0.86, 0.36), (0.3, 0.1, 0.74, 0.15, 0.26, 0.16)),
+    "diffusion": ((0.3, 30, 0.67, 0.32, 0.42, 0.16), (0.3, 1, 0.86, 1.05, 0.12, 0.10)),
+    "gradient_diffusion": ((0.3, 30, 0.54, 0.11, 0.36, 0.32), (0.3, 0.3, 0.77, 0.15, 0.16, 0.17)),
+    "robust_diffusion": ((0.3, 100, 0.69, 0.52, 0.44, 0.12), (1, 1, 0.84, 0.62, 0.07, 0.14)),
+    "robust_gradient_diffusion": (
+        (0.3, 30, 0.57, 0.23, 0.40, 0.29),
+        (0.3, 0.3, 0.77, 0.14, 0.12, 0.20),
+    ),
+}
+
+
+def thesis_value(loss: str, odm: bool, key: str) -> float | None:
+    """Table 4.1's value of ``key`` (one of THESIS_KEYS) for ``loss`` with the ODM off / on."""
+    row = THESIS_TABLE_4_1.get(loss)
+    return None if row is None else row[int(odm)][THESIS_KEYS.index(key)]
+
+
+# ---------------------------------------------------------------- data
+
+
+@dataclass
+class ToyScene:
+    """One toy scene, ready to optimise: frames ``(3, 3, H, W)`` RGB in [0, 1], the centre
+    frame's true depth ``(1, 1, H, W)`` metres (unclipped), the pixels LE is scored on
+    ``(1, 1, H, W)`` bool, ``K`` ``(3, 3)`` pixels, and the centre → reference pose ``(R, t)``
+    of each of :data:`REFERENCES` (benchmark.reprojection's convention)."""
+
+    name: str
+    frames: torch.Tensor
+    depth: torch.Tensor
+    valid: torch.Tensor
+    K: torch.Tensor
+    poses: list[tuple[torch.Tensor, torch.Tensor]]
+
+    @property
+    def target(self) -> torch.Tensor:
+        return self.frames[CENTRE : CENTRE + 1]
+
+    def reference(self, i: int) -> torch.Tensor:
+        return self.frames[REFERENCES[i] : REFERENCES[i] + 1]
+
+    def to(self, device: torch.device | str) -> ToyScene:
+        """A copy with every tensor on ``device``."""
+        return ToyScene(
+            self.name,
+            self.frames.to(device),
+            self.depth.to(device),
+            self.valid.to(device),
+            self.K.to(device),
+            [(r.to(device), t.to(device)) for r, t in self.poses],
+        )
+
+
+class ToyDataError(ValueError):
+    """A toy dataset that is missing or not a 3-frame scene (the message names the folder)."""
+
+
+def load_scene(root: str | Path, name: str) -> ToyScene:
+    """Scene 0 of the dataset at ``root`` as a :class:`ToyScene` named ``name`` (float32)."""
+    from stillbox_gen.formats import DatasetError
+
+    try:
+        scene = Dataset(root).scene(0)
+        if scene.frames != 3:
+            raise ToyDataError(f"'{root}' has {scene.frames} frames per scene, not 3")
+        rgb = np.stack([scene.load_rgb(i) for i in range(3)]).astype(np.float32) / 255
+        depth = scene.load_depth(CENTRE).astype(np.float32)
+    except DatasetError as e:
+        raise ToyDataError(str(e)) from None
+    poses = []
+    for ref in REFERENCES:
+        pose = torch.from_numpy(scene.relative_pose(CENTRE, ref)).float()
+        poses.append((pose[:3, :3], pose[:3, 3]))
+    d = torch.from_numpy(depth)[None, None]
+    return ToyScene(
+        name=name,
+        frames=torch.from_numpy(rgb).permute(0, 3, 1, 2).contiguous(),
+        depth=d,
+        valid=torch.isfinite(d) & (d > 0) & (d <= MAX_DEPTH),
+        K=torch.from_numpy(scene.K).float(),
+        poses=poses,
+    )
+
+
+@torch.no_grad()
+def scene_warps(
+    scene: ToyScene, depth: torch.Tensor, occluded: list[torch.Tensor] | None = None
+) -> list[tuple[torch.Tensor, torch.Tensor]]:
+    """Each reference warped to the centre frame with ``depth`` ``(1, 1, H, W)``: ``(warped
+    (1, 3, H, W), kept (1, 1, H, W) bool)``, kept = valid and (when given) not occluded."""
+    out = []
+    for i, (r, t) in enumerate(scene.poses):
+        warped, valid = inverse_warp(scene.reference(i), depth, r, t, scene.K)
+        out.append((warped, valid if occluded is None else valid & ~occluded[i]))
+    return out
+
+
+# ---------------------------------------------------------------- metrics
+
+
+def log_error(depth: torch.Tensor, truth: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    """LE: ``mean |log θ − log θ̃|`` over ``valid`` pixels, per sample ``(B,)``.
+
+    ``depth`` ``(B, 1, H, W)`` estimates, ``truth`` and ``valid`` ``(1 or B, 1, H, W)``."""
+    err = (depth.log() - truth.clamp(min=MIN_DEPTH).log()).abs()
+    valid = valid.expand_as(err)
+    return torch.where(valid, err, 0).flatten(1).sum(1) / valid.flatten(1).sum(1).clamp(min=1)
+
+
+def scene_quality(le: float | np.ndarray, le0: float) -> float | np.ndarray:
+    """M_S = max(0, 1 − LE / LE_0) (§4.6 "Metrics"): 1 for the true depth, 0 when no better
+    than the start."""
+    return np.maximum(0.0, 1.0 - np.asarray(le) / le0)
+
+
+def quality(per_scene: Sequence[float | np.ndarray]) -> float | np.ndarray:
+    """M, the geometric mean of the scenes' M_S (§4.6 "Metrics")."""
+    stacked = np.stack([np.asarray(m, dtype=np.float64) for m in per_scene])
+    return np.prod(stacked, axis=0) ** (1.0 / len(per_scene))
+
+
+def robustness(
+    m: np.ndarray, best: tuple[int, int], lambdas: Sequence[float], kappas: Sequence[float]
+) -> float:
+    """ΔM, the robustness index of Table 4.1: how fast M falls around its optimum.
+
+    The thesis names it ("robustness index", to minimise) without defining it; it reads it off
+    the heat maps (an optimum "more evenly distributed, without a strong peak" is more robust)
+    and its values reach 1.05, so it is not a drop of M itself (M ≤ 1). Ours: the mean, over the
+    grid neighbours of the optimum along λ and along κ (up to 4), of ``(M* − M_neighbour)``
+    divided by their distance in decades (``|log10(v_neighbour / v*)|``): the mean slope of M
+    away from the optimum, per decade. 0 for a flat optimum. ``m``: ``(len(λ), len(κ))``;
+    ``best``: the optimum's index.
+    """
+    i, j = best
+    slopes = []
+    for a, b in ((i - 1, j), (i + 1, j), (i, j - 1), (i, j + 1)):
+        if 0 <= a < m.shape[0] and 0 <= b < m.shape[1]:
+            decades = abs(math.log10(lambdas[a] / lambdas[i])) + abs(
+                math.log10(kappas[b] / kappas[j])
+            )
+            slopes.append((m[i, j] - m[a, b]) / decades)
+    return float(np.mean(slopes)) if slopes else 0.0
+
+
+# ---------------------------------------------------------------- batched optimisation
+
+
+@dataclass
+class Problem:
+    """``len(scenes) × G`` independent depth maps in one batch (scene-major: sample
+    ``s·G + g`` is scene ``s`` at grid point ``g``), with each sample's λ and κ."""
+
+    scenes: list[ToyScene]
+    lambdas: torch.Tensor  # (G,)
+    kappas: torch.Tensor  # (G,)
+    target: torch.Tensor = field(init=False)
+    references: list[torch.Tensor] = field(init=False)
+    poses: list[tuple[torch.Tensor, torch.Tensor]] = field(init=False)
+
+    def __post_init__(self) -> None:
+        g = self.points
+
+        def rep(x: torch.Tensor) -> torch.Tensor:
+            return x.repeat_interleave(g, 0)
+
+        self.target = rep(torch.cat([s.target for s in self.scenes]))
+        self.references = [
+            rep(torch.cat([s.reference(i) for s in self.scenes])) for i in range(len(REFERENCES))
+        ]
+        self.poses = [
+            (
+                rep(torch.stack([s.poses[i][0] for s in self.scenes])),
+                rep(torch.stack([s.poses[i][1] for s in self.scenes])),
+            )
+            for i in range(len(REFERENCES))
+        ]
+        self.truth = rep(torch.cat([s.depth for s in self.scenes]))
+        self.valid = rep(torch.cat([s.valid for s in self.scenes]))
+        self.lam = self.lambdas.repeat(len(self.scenes))
+        self.kap = self.kappas.repeat(len(self.scenes))
+
+    @property
+    def points(self) -> int:
+        return len(self.lambdas)
+
+    @property
+    def K(self) -> torch.Tensor:
+        return self.scenes[0].K
+
+    def warps(self, depth: torch.Tensor) -> list[tuple[torch.Tensor, torch.Tensor]]:
+        """(warped reference, valid mask) of each reference for ``depth`` ``(B, 1, H, W)``."""
+        return [
+            inverse_warp(ref, depth, r, t, self.K)
+            for ref, (r, t) in zip(self.references, self.poses, strict=True)
+        ]
+
+    @torch.no_grad()
+    def occlusions(self, depth: torch.Tensor) -> list[torch.Tensor]:
+        """The ODM's occluded mask ``(B, 1, H, W)`` of each reference, computed by chunks."""
+        out, n = [], ODM_CHUNK
+        for r, t in self.poses:
+            parts = [
+                occlusion_mask(depth[i : i + n], r[i : i + n], t[i : i + n], self.K)
+                for i in range(0, depth.shape[0], n)
+            ]
+            out.append(torch.cat(parts))
+        return out
+
+    def photometric(
+        self, depth: torch.Tensor, occluded: list[torch.Tensor] | None = None
+    ) -> torch.Tensor:
+        """L1 photometric loss per sample ``(B,)`` (α = 0), occluded pixels dropped if given."""
+        warps = self.warps(depth)
+        if occluded is None:
+            occluded = [None] * len(warps)
+        masks = [m if o is None else m & ~o for (_, m), o in zip(warps, occluded, strict=True)]
+        return photometric_loss(self.target, [w for w, _ in warps], masks, alpha=0.0)
+
+    def loss(
+        self, depth: torch.Tensor, smooth: str | None, occluded: list[torch.Tensor] | None
+    ) -> torch.Tensor:
+        """``L_p + λ·L_s(1/θ, κ)`` per sample ``(B,)``."""
+        total = self.photometric(depth, occluded)
+        if smooth is None:
+            return total
+        g, xi = self.points, 1 / depth
+        parts = [  # per scene, so that its image's gradients are computed once, not G times
+            SMOOTH_LOSSES[smooth](xi[i * g : (i + 1) * g], s.target, self.kappas)
+            for i, s in enumerate(self.scenes)
+        ]
+        return total + self.lam * torch.cat(parts)
+
+
+@dataclass
+class RunResult:
+    """One batched optimisation: final depth ``(B, 1, H, W)``, final LE ``(B,)``, the LE
+    history ``(T, B)`` at ``history_iterations``, the last ODM masks (or None), the final
+    photometric loss ``(B,)``, the wall time and the process CPU time (both threads; a fairer
+    measure than wall time on a shared machine), seconds."""
+
+    depth: torch.Tensor
+    le: np.ndarray
+    history: np.ndarray
+    history_iterations: list[int]
+    occluded: list[torch.Tensor] | None
+    photometric: np.ndarray
+    seconds: float
+    cpu_seconds: float
+
+
+def optimise(
+    problem: Problem,
+    smooth: str | None,
+    iterations: int,
+    odm_every: int = 0,
+    start: torch.Tensor | None = None,
+    lr: float = LEARNING_RATE,
+    on_step: Callable[[], None] | None = None,
+) -> RunResult:
+    """Adam on the depths of every sample of ``problem`` for ``iterations`` steps.
+
+    ``smooth``: a name of SMOOTH_LOSSES, or None for the photometric loss alone. ``odm_every``:
+    0 for no ODM, else the ODM masks are recomputed from the current depth every this many
+    iterations (first at iteration 0). ``start``: ``(B, 1, H, W)`` start depth (default
+    :data:`START_DEPTH` everywhere). ``on_step`` is called after every step (progress bars).
+    """
+    b = problem.target.shape[0]
+    h, w = problem.target.shape[2:]
+    if start is None:
+        start = torch.full((b, 1, h, w), START_DEPTH, device=problem.target.device)
+    depth = start.clone().clamp(MIN_DEPTH, MAX_DEPTH).requires_grad_(True)
+    opt = torch.optim.Adam([depth], lr=lr)
+    every = max(1, iterations // HISTORY_POINTS)
+    history, steps, occluded = [], [], None
+    t0, c0 = time.perf_counter(), time.process_time()
+    for it in range(iterations):
+        if odm_every and it % odm_every == 0:
+            occluded = problem.occlusions(depth.detach())
+        if it % every == 0:
+            history.append(log_error(depth.detach(), problem.truth, problem.valid).cpu().numpy())
+            steps.append(it)
+        opt.zero_grad(set_to_none=True)
+        problem.loss(depth, smooth, occluded).sum().backward()
+        opt.step()
+        with torch.no_grad():
+            depth.clamp_(MIN_DEPTH, MAX_DEPTH)
+        if on_step is not None:
+            on_step()
+    final = depth.detach()
+    with torch.no_grad():
+        le = log_error(final, problem.truth, problem.valid).cpu().numpy()
+        photo = problem.photometric(final, occluded).cpu().numpy()
+    history.append(le)
+    steps.append(iterations)
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    return RunResult(final, le, np.stack(history), steps, occluded, photo, wall, cpu)
+
+
+def initial_log_errors(scenes: Sequence[ToyScene]) -> dict[str, float]:
+    """LE_0 of each scene: the LE of the start depth (START_DEPTH everywhere)."""
+    out = {}
+    for s in scenes:
+        start = torch.full_like(s.depth, START_DEPTH)
+        out[s.name] = float(log_error(start, s.depth, s.valid)[0])
+    return out
+
+
+# ---------------------------------------------------------------- the study
+
+
+@dataclass
+class StudyConfig:
+    """What one study runs: grids, iterations, ODM period, and which losses."""
+
+    iterations: int = ITERATIONS
+    lambdas: tuple[float, ...] = LAMBDAS
+    kappas: tuple[float, ...] = KAPPAS
+    odm_every: int = ODM_EVERY
+    losses: tuple[str, ...] = tuple(SMOOTH_LOSSES)
+    odm: tuple[bool, ...] = (False, True)
+
+    @classmethod
+    def quick(cls, iterations: int | None = None) -> StudyConfig:
+        return cls(
+            iterations=iterations or QUICK_ITERATIONS,
+            lambdas=QUICK_LAMBDAS,
+            kappas=QUICK_KAPPAS,
+            odm_every=QUICK_ODM_EVERY,
+        )
+
+    @property
+    def runs(self) -> int:
+        """Batched optimisations: photometric alone (ODM off), then each loss × ODM setting."""
+        return 1 + len(self.losses) * len(self.odm)
+
+
+def grid(cfg: StudyConfig) -> tuple[torch.Tensor, torch.Tensor]:
+    """(λ, κ) of every grid point, ``(G,)`` each, λ-major: point ``i·len(κ) + j``."""
+    lam = torch.tensor(cfg.lambdas).repeat_interleave(len(cfg.kappas))
+    kap = torch.tensor(cfg.kappas).repeat(len(cfg.lambdas))
+    return lam, kap
+
+
+def summarise(
+    run: RunResult, scenes: Sequence[ToyScene], le0: dict[str, float], cfg: StudyConfig | None
+) -> dict:
+    """results.json's block for one run: LE per scene and M over the grid (``(len(λ), len(κ))``
+    lists) and the best grid point (κ, λ, M, ΔM, LE per scene); ``cfg`` None for the
+    photometric-only run (one point)."""
+    g = len(run.le) // len(scenes)
+    le = {s.name: run.le[i * g : (i + 1) * g] for i, s in enumerate(scenes)}
+    ms = {n: scene_quality(v, le0[n]) for n, v in le.items()}
+    m = quality(list(ms.values()))
+    photo = {s.name: run.photometric[i * g : (i + 1) * g] for i, s in enumerate(scenes)}
+    shape = (1, 1) if cfg is None else (len(cfg.lambdas), len(cfg.kappas))
+    best = int(np.argmax(m))
+    bi, bj = divmod(best, shape[1])
+    out = {
+        "seconds": round(run.seconds, 2),
+        "cpu_seconds": round(run.cpu_seconds, 2),
+        "seconds_per_iteration": round(run.seconds / max(1, run.history_iterations[-1]), 4),
+        "le": {n: v.reshape(shape).round(4).tolist() for n, v in le.items()},
+        "m": m.reshape(shape).round(4).tolist(),
+        "best": {
+            "index": best,
+            "m": round(float(m[best]), 4),
+            "delta_m": 0.0
+            if cfg is None
+            else round(robustness(m.reshape(shape), (bi, bj), cfg.lambdas, cfg.kappas), 4),
+            "le": {n: round(float(v[best]), 4) for n, v in le.items()},
+            "m_s": {n: round(float(v[best]), 4) for n, v in ms.items()},
+            "photometric": {n: round(float(v[best]), 5) for n, v in photo.items()},
+        },
+    }
+    if cfg is not None:
+        out["best"]["lambda"] = cfg.lambdas[bi]
+        out["best"]["kappa"] = cfg.kappas[bj]
+    return out
+
+
+def best_samples(run: RunResult, n_scenes: int, best: int) -> list[int]:
+    """Batch indices of grid point ``best`` in each scene."""
+    g = len(run.le) // n_scenes
+    return [s * g + best for s in range(n_scenes)]
+
+
+@dataclass
+class BestRun:
+    """What the figures need of a run's best grid point: per scene, its final depth
+    ``(1, 1, H, W)``, the last ODM masks (or None) and the LE history."""
+
+    label: str
+    depth: dict[str, torch.Tensor]
+    occluded: dict[str, list[torch.Tensor] | None]
+    history: dict[str, np.ndarray]
+    history_iterations: list[int]
+
+
+def _best_run(label: str, run: RunResult, scenes: Sequence[ToyScene], best: int) -> BestRun:
+    idx = best_samples(run, len(scenes), best)
+    return BestRun(
+        label=label,
+        depth={s.name: run.depth[i : i + 1].cpu() for s, i in zip(scenes, idx, strict=True)},
+        occluded={
+            s.name: None if run.occluded is None else [o[i : i + 1].cpu() for o in run.occluded]
+            for s, i in zip(scenes, idx, strict=True)
+        },
+        history={s.name: run.history[:, i] for s, i in zip(scenes, idx, strict=True)},
+        history_iterations=run.history_iterations,
+    )
+
+
+def run_key(loss: str, odm: bool) -> str:
+    """results.json's key of a run: ``"<loss>/odm-off"`` or ``"<loss>/odm-on"``."""
+    return f"{loss}/odm-{'on' if odm else 'off'}"
+
+
+def run_study(
+    scenes: Sequence[ToyScene],
+    cfg: StudyConfig,
+    on_run: Callable[[str], None] | None = None,
+    on_step: Callable[[], None] | None = None,
+) -> tuple[dict, dict[str, BestRun]]:
+    """The study: photometric loss alone, then every loss of ``cfg`` × ODM setting over the
+    (λ, κ) grid, each one batch. Returns results.json's dict and each run's :class:`BestRun`
+    (key ``"photometric"`` or :func:`run_key`). ``on_run(key)`` is called before each run."""
+    scenes = list(scenes)
+    le0 = initial_log_errors(scenes)
+    results: dict = {
+        "scenes": [s.name for s in scenes],
+        "iterations": cfg.iterations,
+        "learning_rate": LEARNING_RATE,
+        "optimizer": "Adam (betas 0.9, 0.999)",
+        "start_depth_m": START_DEPTH,
+        "depth_range_m": [MIN_DEPTH, MAX_DEPTH],
+        "odm_every": cfg.odm_every,
+        "lambdas": list(cfg.lambdas),
+        "kappas": list(cfg.kappas),
+        "le0": {n: round(v, 4) for n, v in le0.items()},
+        "runs": {},
+    }
+    best: dict[str, BestRun] = {}
+    if on_run is not None:
+        on_run("photometric")
+    device = scenes[0].frames.device
+    alone = Problem(scenes, torch.zeros(1, device=device), torch.zeros(1, device=device))
+    run = optimise(alone, None, cfg.iterations, on_step=on_step)
+    results["photometric"] = summarise(run, scenes, le0, None)
+    best["photometric"] = _best_run("photometric", run, scenes, 0)
+    lam, kap = grid(cfg)
+    problem = Problem(scenes, lam.to(device), kap.to(device))
+    for loss in cfg.losses:
+        for odm in cfg.odm:
+            key = run_key(loss, odm)
+            if on_run is not None:
+                on_run(key)
+            every = cfg.odm_every if odm else 0
+            run = optimise(problem, loss, cfg.iterations, every, on_step=on_step)
+            block = summarise(run, scenes, le0, cfg)
+            results["runs"][key] = block
+            best[key] = _best_run(key, run, scenes, block["best"]["index"])
+    return results, best
+
+
+def table_markdown(results: dict) -> str:
+    """Table 4.1's layout, ours beside the thesis': per loss, rows κ, λ, M, ΔM, LE (Horizon),
+    LE (Flower), columns ODM off / on, each "ours (thesis)"."""
+    rows = [("κ", "kappa"), ("λ", "lambda"), ("M", "m"), ("ΔM", "delta_m")]
+    rows += [(f"LE ({n.capitalize()})", n) for n in SCENES]
+    lines = []
+    for loss in dict.fromkeys(k.split("/")[0] for k in results["runs"]):
+        lines += [
+            f"| {loss} | ODM off: ours (thesis) | ODM on: ours (thesis) |",
+            "|---|---|---|",
+        ]
+        for label, key in rows:
+            cells = []
+            for odm in (False, True):
+                block = results["runs"].get(run_key(loss, odm))
+                thesis = thesis_value(loss, odm, key)
+                ref = "–" if thesis is None else f"{thesis:g}"
+                if block is None:
+                    cells.append(f"not run ({ref})")
+                    continue
+                b = block["best"]
+                ours = b["le"][key] if key in SCENES else b[key]
+                cells.append(
+                    f"{ours:.3g} ({ref})" if key not in ("kappa", "lambda") else f"{ours:g} ({ref})"
+                )
+            lines.append(f"| {label} | {cells[0]} | {cells[1]} |")
+        lines.append("")
+    photo = results["photometric"]["best"]
+    le0 = results["le0"]
+    head = [
+        f"Toy problems (thesis Table 4.1): {results['iterations']} iterations, Adam lr "
+        f"{results['learning_rate']}, grid λ ∈ {results['lambdas']}, κ ∈ {results['kappas']}, "
+        f"ODM mask recomputed every {results['odm_every']} iterations.",
+        "",
+        "LE_0 (start at 10 m): "
+        + ", ".join(f"{n} {v:.3f}" for n, v in le0.items())
+        + "; photometric loss alone: LE "
+        + ", ".join(f"{n} {v:.3f}" for n, v in photo["le"].items())
+        + f", M {photo['m']:.3f}.",
+        "",
+        "ΔM (undefined in the thesis): mean slope of M from the optimum to its grid neighbours "
+        "along λ and κ, per decade (benchmark/toy.py, `robustness`).",
+        "",
+    ]
+    return "\n".join(head + lines)
+
+
+def measure(
+    scenes: Sequence[ToyScene], cfg: StudyConfig, iterations: int = 3
+) -> dict[str, dict[str, float]]:
+    """Seconds per iteration of each loss's full batch (``len(scenes)`` × grid points), wall
+    and process CPU time, after one warm-up iteration; ``"photometric"`` alone; and one ODM
+    call on the whole batch (``"odm"``, both references). With the ODM every k iterations an
+    iteration costs ``loss + odm / k``."""
+    lam, kap = grid(cfg)
+    problem = Problem(list(scenes), lam, kap)
+    out = {}
+    for loss in (None, *cfg.losses):
+        optimise(problem, loss, 1)
+        run = optimise(problem, loss, iterations)
+        out[loss or "photometric"] = {
+            "wall": run.seconds / iterations,
+            "cpu": run.cpu_seconds / iterations,
+        }
+    depth = torch.full_like(problem.truth, START_DEPTH)
+    t0, c0 = time.perf_counter(), time.process_time()
+    problem.occlusions(depth)
+    out["odm"] = {"wall": time.perf_counter() - t0, "cpu": time.process_time() - c0}
+    return out
+
+
+def extrapolate(per_iteration: dict[str, dict[str, float]], cfg: StudyConfig, key: str) -> float:
+    """Seconds of the whole study of ``cfg`` from :func:`measure`'s ``key`` ("wall" or "cpu")
+    times, the photometric-only run counted as one loss run (it is 1 grid point, not G)."""
+    odm = per_iteration["odm"][key] / cfg.odm_every
+    total = 0.0
+    for loss in cfg.losses:
+        for on in cfg.odm:
+            total += per_iteration[loss][key] + (odm if on else 0.0)
+    points = len(cfg.lambdas) * len(cfg.kappas)
+    total += per_iteration["photometric"][key] / points
+    return total * cfg.iterations
