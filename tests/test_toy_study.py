@@ -1,4 +1,4 @@
-"""The toy-problem study (benchmark.toy, benchmark.toy_cli; thesis §4.6, Table 4.1).
+"""The toy-problem study (benchmark.unsupervised.toy and its command; thesis §4.6, Table 4.1).
 
 Fast tests check the metrics, ΔM and the table on hand-made numbers and the command's one-line
 errors; the render tests render both toy presets at 64 px (about 3 s each) and run the study
@@ -10,15 +10,15 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-import click
 import numpy as np
 import pytest
 import torch
 from conftest import run_cli
 
-from benchmark import toy
-from benchmark.reprojection import SMOOTH_LOSSES
-from benchmark.toy_cli import RESULTS_JSON, TABLE_MD, toy_cmd
+from benchmark.cli.options import UserError
+from benchmark.cli.unsupervised import RESULTS_JSON, TABLE_MD, toy_cmd
+from benchmark.unsupervised import toy
+from benchmark.unsupervised.reprojection import SMOOTH_LOSSES
 
 RES = 64  # the presets' 200 px rendered small
 
@@ -75,7 +75,7 @@ def _invoke(*args: object) -> None:
 
 def test_missing_dataset_names_the_option_and_the_command_that_renders_it(tmp_path):
     out = tmp_path / "out"
-    with pytest.raises(click.UsageError) as e:
+    with pytest.raises(UserError) as e:
         _invoke("--flower", tmp_path / "nope", "--horizon", tmp_path / "nope2", "--out", out)
     assert e.value.exit_code == 2
     msg = e.value.format_message()
@@ -95,7 +95,7 @@ def test_missing_dataset_names_the_option_and_the_command_that_renders_it(tmp_pa
     ],
 )
 def test_bad_options_are_one_line_errors(tmp_path, args, flag):
-    with pytest.raises(click.UsageError, match=flag):
+    with pytest.raises(UserError, match=flag):
         _invoke("--out", tmp_path / "out", *args)
     assert not (tmp_path / "out").exists()
 

@@ -9,7 +9,7 @@ import sys
 
 import click
 
-from . import supervised, video
+from . import supervised, unsupervised, video
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
@@ -25,6 +25,7 @@ def cli() -> None:
     stillbox-bench speed                                     size and speed table
     stillbox-bench infer --ckpt C --input flight.mp4 --speed 9 --out out/  depth of a video
     stillbox-bench eval-multishift --ckpt C --data SEQ --out R  shift strategies on sequences
+    stillbox-bench toy --out runs/toy                        thesis 4.6: losses without ground truth
     stillbox-bench list                                      registered models
     """
 
@@ -38,6 +39,7 @@ for command in (
     supervised.speed,
     video.infer,
     video.eval_multishift,
+    unsupervised.toy_cmd,
 ):
     cli.add_command(command)
 

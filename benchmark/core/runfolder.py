@@ -33,6 +33,7 @@ from __future__ import annotations
 import csv
 import io
 import json
+import os
 import shutil
 from collections.abc import Callable
 from pathlib import Path
@@ -170,6 +171,18 @@ def atomic_write_binary(
     path = Path(path)
     make_folder(path.parent)
     atomic_write(path, write, sync_folder)
+
+
+def save_figure(fig, path: str | os.PathLike, dpi: int = 100) -> None:
+    """Render the matplotlib Figure ``fig`` to PNG at ``path`` atomically (folders created),
+    then release it."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    try:
+        FigureCanvasAgg(fig)
+        atomic_write_binary(path, lambda f: fig.savefig(f, format="png", dpi=dpi))
+    finally:
+        fig.clear()
 
 
 def _write_json(path: Path, obj) -> None:

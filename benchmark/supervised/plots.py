@@ -16,26 +16,16 @@ import os
 
 import matplotlib
 import numpy as np
-from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from stillbox_gen.conventions import MAX_DEPTH
 
-from ..core import runfolder
 from ..core.metrics import MIN_DEPTH
 from ..core.models import FLOW_DIV
+from ..core.runfolder import save_figure
 
 MIN_BIN_COUNT = 10  # bins with fewer pixels are not drawn
 QUARTILE_NOTE = "median, shaded 25–75 %"
-
-
-def _save(fig: Figure, path: str | os.PathLike, dpi: int = 100) -> None:
-    """Render ``fig`` to PNG at ``path`` atomically (folders created), then release it."""
-    try:
-        FigureCanvasAgg(fig)
-        runfolder.atomic_write_binary(path, lambda f: fig.savefig(f, format="png", dpi=dpi))
-    finally:
-        fig.clear()
 
 
 def _binned_quartiles(
@@ -88,7 +78,7 @@ def _flat(a: np.ndarray) -> np.ndarray:
 
 def error_vs_depth(gt: np.ndarray, abs_err: np.ndarray, path: str | os.PathLike, **kw) -> None:
     """:func:`error_vs_depth_figure` written to the PNG ``path``."""
-    _save(error_vs_depth_figure(gt, abs_err, **kw), path)
+    save_figure(error_vs_depth_figure(gt, abs_err, **kw), path)
 
 
 def error_vs_depth_figure(
@@ -132,7 +122,7 @@ def error_vs_foe_distance(
     curves: dict[str, tuple[np.ndarray, np.ndarray]], path: str | os.PathLike, **kw
 ) -> None:
     """:func:`error_vs_foe_distance_figure` written to the PNG ``path``."""
-    _save(error_vs_foe_distance_figure(curves, **kw), path)
+    save_figure(error_vs_foe_distance_figure(curves, **kw), path)
 
 
 def error_vs_foe_distance_figure(
@@ -179,7 +169,7 @@ def error_vs_foe_distance_figure(
 
 def error_vs_estimate(pred: np.ndarray, gt: np.ndarray, path: str | os.PathLike, **kw) -> None:
     """:func:`error_vs_estimate_figure` written to the PNG ``path``."""
-    _save(error_vs_estimate_figure(pred, gt, **kw), path)
+    save_figure(error_vs_estimate_figure(pred, gt, **kw), path)
 
 
 def error_vs_estimate_figure(
@@ -231,7 +221,7 @@ def _mark_foe(ax, foe: tuple[float, float] | None, height: int, width: int) -> N
 
 def sample_grid(samples: list[dict], path: str | os.PathLike, **kw) -> None:
     """:func:`sample_grid_figure` written to the PNG ``path``."""
-    _save(sample_grid_figure(samples, **kw), path)
+    save_figure(sample_grid_figure(samples, **kw), path)
 
 
 def sample_grid_figure(samples: list[dict], max_depth: float = MAX_DEPTH) -> Figure:
@@ -298,7 +288,7 @@ LEARNING_CURVES = {
 
 def learning_curve(rows: list[dict], output: str, path: str | os.PathLike) -> None:
     """:func:`learning_curve_figure` written to the PNG ``path`` (6 × 3.5 in, 110 dpi)."""
-    _save(learning_curve_figure(rows, output), path, dpi=110)
+    save_figure(learning_curve_figure(rows, output), path, dpi=110)
 
 
 def learning_curve_figure(rows: list[dict], output: str) -> Figure:

@@ -49,7 +49,7 @@ import torch
 from stillbox_gen.conventions import MAX_DEPTH
 from stillbox_gen.dataset import Dataset
 
-from .metrics import MIN_DEPTH
+from ..core.metrics import MIN_DEPTH
 from .reprojection import SMOOTH_LOSSES, inverse_warp, occlusion_mask, photometric_loss
 
 #: The two toy scenes in Table 4.1's order of columns, and the preset that renders each.
@@ -142,7 +142,7 @@ class ToyDataError(ValueError):
 
 def load_scene(root: str | Path, name: str) -> ToyScene:
     """Scene 0 of the dataset at ``root`` as a :class:`ToyScene` named ``name`` (float32)."""
-    from stillbox_gen.formats import DatasetError
+    from stillbox_gen.errors import DatasetError
 
     try:
         scene = Dataset(root).scene(0)

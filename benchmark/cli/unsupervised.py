@@ -1,8 +1,7 @@
 """``stillbox-bench toy``: the toy-problem study of thesis §4.6 (Table 4.1, Figs. 4.13-4.18),
-:mod:`benchmark.toy` run from one command, writing results.json, table.md and the figures.
-
-A click command object (:data:`toy`) for ``benchmark.cli`` to register. User mistakes raise
-``click.UsageError`` (exit code 2), which ``stillbox-bench`` prints as one line.
+:mod:`benchmark.unsupervised.toy` run from one command, writing results.json, table.md and the
+figures. User mistakes raise
+``UserError`` (exit code 2), which ``stillbox-bench`` prints as one line.
 """
 
 from __future__ import annotations
@@ -17,9 +16,11 @@ import numpy as np
 
 from stillbox_gen.formats import atomic_write_text
 
-from . import runfolder, toy_plots
-from . import toy as study
-from .reprojection import SMOOTH_LOSSES
+from ..core import runfolder
+from ..unsupervised import toy as study
+from ..unsupervised import toy_plots
+from ..unsupervised.reprojection import SMOOTH_LOSSES
+from .options import UserError, torch_device
 
 RESULTS_JSON = "results.json"
 TABLE_MD = "table.md"
@@ -31,11 +32,11 @@ def _load(option: str, root: Path, name: str) -> study.ToyScene:
     giving the command that renders it."""
     make = f"stillbox-gen --preset {study.PRESETS[name]} --out {root}"
     if not root.exists():
-        raise click.UsageError(f"{option}: no dataset at '{root}'; render it with '{make}'")
+        raise UserError(f"{option}: no dataset at '{root}'; render it with '{make}'")
     try:
         return study.load_scene(root, name)
     except (study.ToyDataError, OSError) as e:
-        raise click.UsageError(f"{option}: {e} (render it with '{make}')") from None
+        raise UserError(f"{option}: {e} (render it with '{make}')") from None
 
 
 def _grid_option(flag: str, text: str | None) -> tuple[float, ...] | None:
@@ -46,11 +47,9 @@ def _grid_option(flag: str, text: str | None) -> tuple[float, ...] | None:
     try:
         values = tuple(float(v) for v in text.split(","))
     except ValueError:
-        raise click.UsageError(
-            f"{flag}: expected numbers separated by commas, got '{text}'"
-        ) from None
+        raise UserError(f"{flag}: expected numbers separated by commas, got '{text}'") from None
     if not all(math.isfinite(v) and v > 0 for v in values):
-        raise click.UsageError(f"{flag}: values must be positive and finite, got '{text}'")
+        raise UserError(f"{flag}: values must be positive and finite, got '{text}'")
     return values
 
 
@@ -63,13 +62,13 @@ def _losses_option(text: str | None) -> tuple[str, ...] | None:
     unknown = [n for n in names if n not in SMOOTH_LOSSES]
     if unknown or not names:
         known = ", ".join(SMOOTH_LOSSES)
-        raise click.UsageError(f"--losses: unknown loss '{','.join(unknown)}' (known: {known})")
+        raise UserError(f"--losses: unknown loss '{','.join(unknown)}' (known: {known})")
     return names
 
 
 def _positive(flag: str, value: int | None) -> None:
     if value is not None and value < 1:
-        raise click.UsageError(f"{flag}: must be at least 1, got {value}")
+        raise UserError(f"{flag}: must be at least 1, got {value}")
 
 
 def write_outputs(
@@ -205,15 +204,10 @@ def toy_cmd(
     import torch
     from tqdm import tqdm
 
-    from .train import resolve_device
-
     _positive("--iterations", iterations)
     _positive("--odm-every", odm_every)
     _positive("--threads", threads)
-    try:
-        dev = resolve_device(device)
-    except ValueError as e:
-        raise click.UsageError(str(e)) from None
+    dev = torch_device(device)
     cfg = (
         study.StudyConfig.quick(iterations)
         if quick
@@ -228,7 +222,7 @@ def toy_cmd(
     try:
         out = runfolder.make_folder(out)
     except ValueError as e:
-        raise click.UsageError(str(e)) from None
+        raise UserError(str(e)) from None
     torch.set_num_threads(threads)
     bar = tqdm(total=cfg.runs * cfg.iterations, unit="it", disable=quiet, dynamic_ncols=True)
     t0 = time.perf_counter()
@@ -241,7 +235,3 @@ def toy_cmd(
     results["device"] = str(dev)
     write_outputs(out, results, best, scenes)
     click.echo(f"{_summary(results, seconds)}; results in {out}")
-
-
-#: The command object for ``benchmark.cli`` to register (``cli.add_command(toy)``).
-toy = toy_cmd

@@ -22,8 +22,8 @@ from matplotlib.figure import Figure
 
 from stillbox_gen.conventions import MAX_DEPTH
 
-from .metrics import MIN_DEPTH
-from .plots import _save
+from ..core.metrics import MIN_DEPTH
+from ..core.runfolder import save_figure
 from .toy import SCENES, BestRun, ToyScene, run_key, scene_warps
 
 #: Colour scale of the depth panels (metres, log) and of the log-error panels.
@@ -63,7 +63,7 @@ def heatmaps_figure(results: dict, odm: bool) -> Figure:
 
 def heatmaps(results: dict, odm: bool, path: str | os.PathLike) -> None:
     """:func:`heatmaps_figure` written to ``path``."""
-    _save(heatmaps_figure(results, odm), path)
+    save_figure(heatmaps_figure(results, odm), path)
 
 
 def panels_figure(scene: ToyScene, runs: Sequence[BestRun], title: str) -> Figure:
@@ -99,7 +99,7 @@ def panels_figure(scene: ToyScene, runs: Sequence[BestRun], title: str) -> Figur
 
 def panels(scene: ToyScene, runs: Sequence[BestRun], title: str, path: str | os.PathLike) -> None:
     """:func:`panels_figure` written to ``path``."""
-    _save(panels_figure(scene, runs, title), path, dpi=PANEL_DPI)
+    save_figure(panels_figure(scene, runs, title), path, dpi=PANEL_DPI)
 
 
 def le_curves_figure(runs: Sequence[BestRun], le0: dict[str, float]) -> Figure:
@@ -120,4 +120,4 @@ def le_curves_figure(runs: Sequence[BestRun], le0: dict[str, float]) -> Figure:
 
 def le_curves(runs: Sequence[BestRun], le0: dict[str, float], path: str | os.PathLike) -> None:
     """:func:`le_curves_figure` written to ``path``."""
-    _save(le_curves_figure(runs, le0), path)
+    save_figure(le_curves_figure(runs, le0), path)
