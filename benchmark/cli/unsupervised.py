@@ -20,7 +20,7 @@ from ..core import runfolder
 from ..unsupervised import toy as study
 from ..unsupervised import toy_plots
 from ..unsupervised.reprojection import SMOOTH_LOSSES
-from .options import UserError, torch_device
+from .options import UserError, torch_device, user_error
 
 RESULTS_JSON = "results.json"
 TABLE_MD = "table.md"
@@ -222,7 +222,7 @@ def toy_cmd(
     try:
         out = runfolder.make_folder(out)
     except ValueError as e:
-        raise UserError(str(e)) from None
+        raise user_error(e) from None
     torch.set_num_threads(threads)
     bar = tqdm(total=cfg.runs * cfg.iterations, unit="it", disable=quiet, dynamic_ncols=True)
     t0 = time.perf_counter()

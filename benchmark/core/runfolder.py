@@ -45,6 +45,7 @@ import torch
 from stillbox_gen.formats import TEMP_INFIX, atomic_write, atomic_write_text
 
 from .checkpoint import first_line
+from .errors import FieldError
 
 CONFIG_JSON = "config.json"
 ENVIRONMENT_JSON = "environment.json"
@@ -152,22 +153,22 @@ def read_rows(run: Path, name: str) -> list[dict]:
 # ---------------------------------------------------------------- folders and atomic writes
 
 
-def make_folder(folder: Path, flag: str = "--out") -> Path:
+def make_folder(folder: Path, field: str = "out") -> Path:
     """``mkdir -p folder``; a folder that cannot be made (e.g. under /proc, read-only, a file
-    in the way) is a one-line ValueError naming ``flag`` and the folder."""
+    in the way) is a one-line FieldError naming ``field`` (the run folder's) and the folder."""
     folder = Path(folder)
     try:
         folder.mkdir(parents=True, exist_ok=True)
     except OSError as e:
-        raise ValueError(f"{flag}: cannot create '{folder}' ({e.strerror or e})") from None
+        raise FieldError(field, f"cannot create '{folder}' ({e.strerror or e})") from None
     return folder
 
 
 def atomic_write_binary(
     path: Path, write: Callable[[BinaryIO], None], sync_folder: bool = False
 ) -> None:
-    """``formats.atomic_write`` into a run folder, making its folder first (ValueError naming
-    --out when it cannot)."""
+    """``formats.atomic_write`` into a run folder, making its folder first (FieldError naming
+    ``out`` when it cannot)."""
     path = Path(path)
     make_folder(path.parent)
     atomic_write(path, write, sync_folder)

@@ -52,7 +52,8 @@ SCALE_RULES = {
     Scoring.DEPTH: "prediction × |pair translation| / nominal displacement (known displacement; "
     "never the ground-truth median)",
     Scoring.FLOW: "depth from the predicted flow and the pair's known translation (FOE "
-    f"geometry, benchmark.flow), clamped to {_CLAMP} m; every pixel scored, the FOE's included",
+    f"geometry, benchmark.core.flow), clamped to {_CLAMP} m; every pixel scored, the FOE's "
+    "included",
     Scoring.EXACT_FLOW: "depth from the exact flow and the pair's known translation (FOE "
     f"geometry), clamped to {_CLAMP} m; every pixel scored",
     Scoring.CONSTANT: "one depth everywhere: the training split's median depth (no scale needed)",
