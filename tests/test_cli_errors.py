@@ -99,6 +99,7 @@ def test_empty_path_is_refused_not_the_current_folder(tmp_path, monkeypatch, arg
     assert sorted(tmp_path.iterdir()) == []
 
 
+@pytest.mark.blender  # generate/bench check Blender before the folder
 def test_out_whose_dataset_json_leads_outside_is_refused(tmp_path):
     """--out's dataset.json as a symlink to a file outside: refused, that file left alone."""
     outside = tmp_path / "elsewhere.json"
@@ -194,6 +195,7 @@ def test_truncated_texture_file_is_refused(tmp_path):
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.blender  # generate/bench check Blender before the folder
 def test_output_path_that_is_a_file_is_refused_and_kept(tmp_path):
     target = tmp_path / "afile"
     target.write_text("precious")
@@ -201,12 +203,14 @@ def test_output_path_that_is_a_file_is_refused_and_kept(tmp_path):
     assert target.read_text() == "precious"
 
 
+@pytest.mark.blender  # generate/bench check Blender before the folder
 def test_foreign_folder_is_refused_and_kept(tmp_path):
     (tmp_path / "mine.txt").write_text("precious")
     assert_user_error(invoke_cli("--out", tmp_path), "--out", "not a stillbox-gen dataset")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["mine.txt"]
 
 
+@pytest.mark.blender  # generate/bench check Blender before the folder
 def test_dataset_with_other_parameters_is_not_mixed(tmp_path):
     """Resuming into a folder made with another seed is refused before anything changes."""
     out = tmp_path / "ds"

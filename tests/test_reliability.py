@@ -58,6 +58,7 @@ def tree_with_info(root: Path) -> dict[str, bytes]:
     return {str(p.relative_to(root)): p.read_bytes() for p in root.rglob("*") if p.is_file()}
 
 
+@pytest.mark.blender  # generate/bench check Blender before the folder
 def test_shards_of_one_split_share_a_folder_but_no_shard_runs_twice(tmp_path):
     """Shard 0/2 holds a new folder: shard 1/2 may write beside it; shard 0/2 again, or an
     unsharded run, is refused in one line naming the folder and the holder, writing nothing. Once

@@ -60,6 +60,7 @@ def test_gpu_error_end_to_end_keeps_blender_warnings_off_stderr(tmp_path):
 
 
 @cpu_only
+@pytest.mark.blender  # generate/bench check Blender before the folder
 def test_bench_refuses_a_missing_gpu_before_measuring():
     assert_user_error(invoke_cli("bench", "--device", "optix"), "--device optix: no OPTIX device")
 
