@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 import torch
 
+from benchmark.core.flow import pixel_grid, warp
 from benchmark.unsupervised import reprojection as rp
 from stillbox_gen.camera import rotation_vector_to_matrix
 
@@ -154,7 +155,59 @@ def test_gradients_flow_to_depth_and_pose(scene_pair):
     assert t.grad.abs().sum() > 0
 
 
+def test_precomputed_rays_warp_as_the_back_projection(scene_pair):
+    """inverse_warp_rays (precomputed rays, hand-written ∂/∂θ) gives the warp, mask and depth
+    gradient of the back-projection it replaces (reference_points + project, sampled by
+    core.flow.warp) and of its autograd path (taken when the pose needs a gradient)."""
+    _, depth_t, image_r, (r, t) = scene_pair
+    gen = torch.Generator().manual_seed(0)
+    depth = depth_t * (1 + 0.05 * torch.rand(depth_t.shape, generator=gen, dtype=DT))
+    weights = torch.rand(image_r.shape, generator=gen, dtype=DT)  # a loss with every gradient
+    rays, offset = rp.warp_rays(r, t, K, SIZE, SIZE)
+
+    def run(fn):
+        d = depth.clone().requires_grad_(True)
+        warped, valid = fn(d)
+        (warped * weights).sum().backward()
+        return warped.detach(), valid, d.grad
+
+    def back_projection(d):
+        coords, z = rp.project(rp.reference_points(d, r, t, K), K)
+        xs, ys = pixel_grid(SIZE, SIZE, d)
+        warped, inside = warp(image_r, coords - torch.stack((xs, ys)))
+        return warped, inside.unsqueeze(1) & (z > 0) & (d > 0)
+
+    expected = run(back_projection)
+    fast = run(lambda d: rp.inverse_warp_rays(image_r, d, rays, offset))
+    slow = run(lambda d: rp.inverse_warp_rays(image_r, d, rays.requires_grad_(True), offset))
+    assert expected[1].float().mean() > 0.8
+    for got in (fast, slow):
+        torch.testing.assert_close(got[0], expected[0], rtol=0, atol=1e-6)
+        assert torch.equal(got[1], expected[1])
+        scale = expected[2].abs().max()
+        torch.testing.assert_close(got[2] / scale, expected[2] / scale, rtol=0, atol=1e-6)
+
+
 # ---------------------------------------------------------------- photometric losses
+
+
+def test_l1_map_gradients_are_autograds():
+    """l1_map's hand-written derivative equals autograd's on |I_t − Ĩ|, with ties (zero
+    difference) and a target broadcast over the batch."""
+    gen = torch.Generator().manual_seed(0)
+    target = torch.rand(1, 3, 5, 6, generator=gen, dtype=DT)
+    warped = torch.rand(2, 3, 5, 6, generator=gen, dtype=DT)
+    warped[0, :, 0] = target[0, :, 0]  # ties: zero subgradient
+    weights = torch.rand(2, 1, 5, 6, generator=gen, dtype=DT)
+    grads = []
+    for fn in (rp.l1_map, lambda t, w: (t - w).abs().mean(1, keepdim=True)):
+        t, w = target.clone().requires_grad_(True), warped.clone().requires_grad_(True)
+        out = fn(t, w)
+        (out * weights).sum().backward()
+        grads.append((out.detach(), t.grad, w.grad))
+    for ours, autograd in zip(grads[0], grads[1], strict=True):
+        torch.testing.assert_close(ours, autograd, rtol=1e-12, atol=0)
+    assert grads[0][2][0, :, 0].eq(0).all() and grads[0][2].ne(0).float().mean() > 0.8
 
 
 def test_l1_and_dssim_maps_by_hand():

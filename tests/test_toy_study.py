@@ -18,7 +18,7 @@ from conftest import run_cli
 from benchmark.cli.options import UserError
 from benchmark.cli.unsupervised import RESULTS_JSON, TABLE_MD, toy_cmd
 from benchmark.unsupervised import toy
-from benchmark.unsupervised.reprojection import SMOOTH_LOSSES
+from benchmark.unsupervised.reprojection import SMOOTH_LOSSES, inverse_warp, photometric_loss
 
 RES = 64  # the presets' 200 px rendered small
 
@@ -71,6 +71,55 @@ def test_grid_is_lambda_major_and_thesis_table_covers_every_loss():
 
 def _invoke(*args: object) -> None:
     toy_cmd.main([str(a) for a in args], standalone_mode=False)
+
+
+def _random_scene(name: str, seed: int, size: int = 24) -> toy.ToyScene:
+    """A toy scene of noise frames, a random depth and two lateral-and-forward poses."""
+    gen = torch.Generator().manual_seed(seed)
+    f, c = size / 2, (size - 1) / 2
+    depth = 2 + 8 * torch.rand(1, 1, size, size, generator=gen)
+    poses = [
+        (torch.eye(3), torch.tensor([0.1, -0.1, 0.2])),
+        (torch.eye(3), torch.tensor([-0.1, 0.1, -0.2])),
+    ]
+    return toy.ToyScene(
+        name=name,
+        frames=torch.rand(3, 3, size, size, generator=gen),
+        depth=depth,
+        valid=depth > 0,
+        K=torch.tensor([[f, 0, c], [0, f, c], [0, 0, 1.0]]),
+        poses=poses,
+    )
+
+
+def test_batched_photometric_loss_is_the_per_reference_one():
+    """Problem.photometric (precomputed rays, both references in one batch) equals
+    photometric_loss over each reference's inverse_warp, with and without occlusion masks."""
+    scenes = [_random_scene("horizon", 0), _random_scene("flower", 1)]
+    problem = toy.Problem(scenes, torch.tensor([1.0, 3.0]), torch.tensor([0.3, 1.0]))
+    gen = torch.Generator().manual_seed(2)
+    depth = 2 + 8 * torch.rand(problem.truth.shape, generator=gen)
+    occluded = [torch.rand(problem.truth.shape, generator=gen) < 0.2 for _ in toy.REFERENCES]
+    for occ in (None, occluded):
+        d = depth.clone().requires_grad_(True)
+        got = problem.photometric(d, occ)
+        got.sum().backward()
+        d2 = depth.clone().requires_grad_(True)
+        warps = [
+            inverse_warp(ref, d2, r, t, problem.K)
+            for ref, (r, t) in zip(problem.references, problem.poses, strict=True)
+        ]
+        masks = (
+            [v for _, v in warps]
+            if occ is None
+            else [v & ~o for (_, v), o in zip(warps, occ, strict=True)]
+        )
+        expected = photometric_loss(problem.target, [w for w, _ in warps], masks, alpha=0.0)
+        expected.sum().backward()
+        assert masks[0].float().mean() > 0.5
+        torch.testing.assert_close(got, expected, rtol=1e-6, atol=0)
+        scale = d2.grad.abs().max()
+        torch.testing.assert_close(d.grad / scale, d2.grad / scale, rtol=0, atol=1e-5)
 
 
 def test_missing_dataset_names_the_option_and_the_command_that_renders_it(tmp_path):

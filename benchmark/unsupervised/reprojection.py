@@ -52,7 +52,7 @@ import kornia
 import torch
 import torch.nn.functional as F
 
-from ..core.flow import pixel_grid, warp
+from ..core.flow import pixel_grid
 
 #: Weight α of DSSIM against L1 in the photometric loss (eq. 5.3).
 SSIM_WEIGHT = 0.15
@@ -109,10 +109,47 @@ def reference_points(
     """
     b, _, h, w = depth.shape
     r, t = _pose(rotation, translation, b, depth)
-    xs, ys = pixel_grid(h, w, depth)
-    pix = torch.stack((xs, ys, torch.ones_like(xs))).reshape(1, 3, h * w)
-    rays = torch.linalg.solve(_intrinsics(K, b, depth), pix.expand(b, 3, h * w))
+    rays = torch.linalg.inv(_intrinsics(K, b, depth)) @ _pixels(h, w, depth)
     return (r @ (rays * depth.reshape(b, 1, h * w)) + t).reshape(b, 3, h, w)
+
+
+def _pixels(height: int, width: int, like: torch.Tensor) -> torch.Tensor:
+    """Homogeneous pixel-centre coordinates ``(x, y, 1)``, ``(1, 3, H·W)``."""
+    xs, ys = pixel_grid(height, width, like)
+    return torch.stack((xs, ys, torch.ones_like(xs))).reshape(1, 3, height * width)
+
+
+def warp_rays(
+    rotation: torch.Tensor | None,
+    translation: torch.Tensor,
+    K: torch.Tensor,
+    height: int,
+    width: int,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The per-pixel constants of :func:`inverse_warp` for a fixed pose and camera.
+
+    A target pixel ``p`` at depth ``θ`` lands in the reference at the homogeneous pixel
+    ``K·(R·θ·K⁻¹p + t) = θ·a(p) + c`` with ``a(p) = K·R·K⁻¹·p`` and ``c = K·t``: linear in
+    ``θ``, so that a depth map optimised against fixed frames (the toy study) pays per
+    iteration only for this affine map and the sampling, not for the back-projection.
+
+    Returns ``a`` ``(B, 3, H, W)`` (homogeneous pixels) and ``c`` ``(B, 3, 1, 1)`` (homogeneous
+    pixels × metres), in the dtype and device of ``translation`` (float32 if it is an integer
+    tensor; B = the batch of the pose or K, 1 if unbatched). Use them with
+    :func:`inverse_warp_rays`.
+    """
+    like = torch.as_tensor(translation)
+    if not like.is_floating_point():
+        like = like.float()
+    batch = max(
+        like.reshape(-1, 3).shape[0],
+        torch.as_tensor(K).reshape(-1, 9).shape[0],
+        1 if rotation is None else torch.as_tensor(rotation).reshape(-1, 9).shape[0],
+    )
+    r, t = _pose(rotation, translation, batch, like)
+    k = _intrinsics(K, batch, like)
+    rays = k @ (r @ (torch.linalg.inv(k) @ _pixels(height, width, like)))
+    return rays.reshape(batch, 3, height, width), (k @ t).reshape(batch, 3, 1, 1)
 
 
 def project(points: torch.Tensor, K: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -136,9 +173,9 @@ def inverse_warp(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """The reference frame resampled on the target's grid with the target's depth (eq. 4.2).
 
-    ``out(p) = I_ref(Π(K·(R·θ(p)·K⁻¹p + t)))``, bilinear at pixel-centre coordinates (sampling
-    by :func:`benchmark.core.flow.warp`), differentiable with respect to ``reference``, ``depth``
-    and the pose.
+    ``out(p) = I_ref(Π(K·(R·θ(p)·K⁻¹p + t)))``, bilinear at pixel-centre coordinates (by
+    :func:`inverse_warp_rays`, after :func:`warp_rays`), differentiable with respect to
+    ``reference``, ``depth`` and the pose.
 
     Args:
         reference: ``(B, C, H, W)`` reference frame.
@@ -151,18 +188,113 @@ def inverse_warp(
         point is in front of the reference camera and projects inside it (within the pixel
         centres ``[0, W − 1] × [0, H − 1]``, so all four bilinear neighbours exist).
     """
-    coords, z = project(reference_points(depth, rotation, translation, K), K)
-    xs, ys = pixel_grid(depth.shape[2], depth.shape[3], depth)
-    warped, inside = warp(reference, coords - torch.stack((xs, ys)))
-    return warped, inside.unsqueeze(1) & (z > 0) & (depth > 0)
+    h, w = depth.shape[2:]
+    t = torch.as_tensor(translation).to(depth)
+    return inverse_warp_rays(reference, depth, *warp_rays(rotation, t, K, h, w))
+
+
+def inverse_warp_rays(
+    reference: torch.Tensor, depth: torch.Tensor, rays: torch.Tensor, offset: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`inverse_warp` from the precomputed constants of :func:`warp_rays`.
+
+    ``reference`` ``(B, C, H, W)``, ``depth`` ``(B, 1, H, W)`` metres, ``rays`` ``(B or 1, 3,
+    H, W)``, ``offset`` ``(B or 1, 3, 1, 1)``. The reference pixel of ``p`` is
+    ``(θ·a + c)_xy / (θ·a + c)_z`` (the depth clamped to 1e-6 m as in :func:`project`), sampled
+    bilinearly at pixel-centre coordinates (``grid_sample``, ``align_corners=True``, the
+    sampling of :func:`benchmark.core.flow.warp`). Differentiable with respect to ``reference``
+    and ``depth``. Returns the warped frame and the valid mask, as :func:`inverse_warp`.
+    """
+    h, w = depth.shape[2:]
+    if rays.requires_grad or offset.requires_grad:  # a pose to optimise: autograd throughout
+        grid, x, y, z = _project_rays(depth, rays, offset)
+    else:
+        grid, x, y, z = _RayProjection.apply(depth, rays, offset)
+    with torch.no_grad():  # NaN fails every comparison: no isfinite needed
+        inside = (x >= 0) & (x <= w - 1) & (y >= 0) & (y <= h - 1)
+    grid = torch.nan_to_num(grid, nan=-2.0).to(reference.dtype)
+    out = F.grid_sample(reference, grid, mode="bilinear", padding_mode="border", align_corners=True)
+    return out, inside.unsqueeze(1) & (z > 0) & (depth > 0)
+
+
+def _project_rays(
+    depth: torch.Tensor, rays: torch.Tensor, offset: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:class:`_RayProjection`'s forward by autograd (differentiable in the rays and offset)."""
+    h, w = depth.shape[2:]
+    hom = depth * rays + offset
+    z = hom[:, 2:]
+    xy = hom[:, :2] / z.clamp(min=1e-6)
+    x, y = xy[:, 0], xy[:, 1]
+    grid = torch.stack((x * (2 / max(w - 1, 1)) - 1, y * (2 / max(h - 1, 1)) - 1), dim=-1)
+    return grid, x.detach(), y.detach(), z.detach()
+
+
+class _RayProjection(torch.autograd.Function):
+    """``θ ↦`` grid_sample's grid of :func:`inverse_warp_rays`, with its derivative by hand.
+
+    Forward: ``z = θ·a_z + c_z``, ``x = (θ·a_x + c_x) / ẑ``, ``y`` alike (``ẑ = max(z, 1e-6)``),
+    and the grid ``(2x / (W − 1) − 1, 2y / (H − 1) − 1)`` ``(B, H, W, 2)``. Backward (to ``θ``
+    only; the rays and the offset are constants): ``∂x/∂θ = (a_x − a_z·x) / ẑ``, ``y`` alike (the
+    clamp's zero derivative is dropped: such points are masked out). Saves autograd's
+    three-channel intermediate tensors, the cost of the toy study's iterations.
+    Returns ``(grid, x (B, H, W), y (B, H, W), z (B, 1, H, W))``; only ``grid`` has a gradient.
+    """
+
+    @staticmethod
+    def forward(ctx, depth, rays, offset):  # noqa: ANN001, ANN205 (autograd's signature)
+        h, w = depth.shape[2:]
+        sx, sy = 2 / max(w - 1, 1), 2 / max(h - 1, 1)
+        z = torch.addcmul(offset[:, 2:], depth, rays[:, 2:])
+        inv = 1 / z.clamp(min=1e-6)
+        x = (torch.addcmul(offset[:, 0:1], depth, rays[:, 0:1]) * inv)[:, 0]
+        y = (torch.addcmul(offset[:, 1:2], depth, rays[:, 1:2]) * inv)[:, 0]
+        grid = torch.stack((x * sx - 1, y * sy - 1), dim=-1)
+        ctx.save_for_backward(rays, x, y, inv)
+        ctx.scale, ctx.depth_shape = (sx, sy), depth.shape
+        ctx.mark_non_differentiable(x, y, z)
+        return grid, x, y, z
+
+    @staticmethod
+    def backward(ctx, grad_grid, *_):  # noqa: ANN001, ANN205
+        rays, x, y, inv = ctx.saved_tensors
+        sx, sy = ctx.scale
+        dx = (rays[:, 0] - rays[:, 2] * x) * grad_grid[..., 0]
+        dy = (rays[:, 1] - rays[:, 2] * y) * grad_grid[..., 1]
+        grad = (dx * sx + dy * sy).unsqueeze(1) * inv
+        if grad.shape != ctx.depth_shape:  # a depth broadcast over a batch of rays
+            grad = grad.sum(0, keepdim=True)
+        return grad, None, None
 
 
 # ---------------------------------------------------------------- photometric losses
 
 
 def l1_map(target: torch.Tensor, warped: torch.Tensor) -> torch.Tensor:
-    """``|I_t − Ĩ|`` averaged over channels, ``(B, 1, H, W)``."""
-    return (target - warped).abs().mean(1, keepdim=True)
+    """``|I_t − Ĩ|`` averaged over channels, ``(B, 1, H, W)``; ``target`` may have batch 1."""
+    return _L1Map.apply(target, warped)
+
+
+class _L1Map(torch.autograd.Function):
+    """:func:`l1_map` with its derivative by hand, ``±sign(Ĩ − I_t)·g / C`` (autograd's values,
+    0 where equal), from one saved sign tensor instead of autograd's several passes over the
+    frames (the photometric loss's main cost in the toy study)."""
+
+    @staticmethod
+    def forward(ctx, target, warped):  # noqa: ANN001, ANN205 (autograd's signature)
+        diff = warped - target
+        ctx.save_for_backward(diff.sign())
+        ctx.target_shape = target.shape
+        return diff.abs().mean(1, keepdim=True)
+
+    @staticmethod
+    def backward(ctx, grad):  # noqa: ANN001, ANN205
+        (sign,) = ctx.saved_tensors
+        grad_warped = sign * (grad / sign.shape[1])
+        grad_target = None
+        if ctx.needs_input_grad[0]:
+            grad_target = (-grad_warped).sum_to_size(ctx.target_shape)
+        return grad_target, grad_warped if ctx.needs_input_grad[1] else None
 
 
 def dssim_map(target: torch.Tensor, warped: torch.Tensor) -> torch.Tensor:

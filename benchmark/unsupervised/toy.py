@@ -50,7 +50,15 @@ from stillbox_gen.conventions import MAX_DEPTH
 from stillbox_gen.dataset import Dataset
 
 from ..core.metrics import MIN_DEPTH
-from .reprojection import SMOOTH_LOSSES, inverse_warp, occlusion_mask, photometric_loss
+from .reprojection import (
+    SMOOTH_LOSSES,
+    inverse_warp,
+    inverse_warp_rays,
+    l1_map,
+    masked_mean,
+    occlusion_mask,
+    warp_rays,
+)
 
 #: The two toy scenes in Table 4.1's order of columns, and the preset that renders each.
 SCENES = ("horizon", "flower")
@@ -260,6 +268,13 @@ class Problem:
             )
             for i in range(len(REFERENCES))
         ]
+        h, w = self.target.shape[2:]
+        rays = [warp_rays(r, t, self.K, h, w) for r, t in self.poses]
+        # both references in one batch: reference i of sample s is sample i·B + s
+        self.stacked_references = torch.cat(self.references)
+        self.stacked_target = self.target.repeat(len(self.references), 1, 1, 1)
+        self.rays = torch.cat([a for a, _ in rays])
+        self.offsets = torch.cat([c for _, c in rays])
         self.truth = rep(torch.cat([s.depth for s in self.scenes]))
         self.valid = rep(torch.cat([s.valid for s in self.scenes]))
         self.lam = self.lambdas.repeat(len(self.scenes))
@@ -273,12 +288,14 @@ class Problem:
     def K(self) -> torch.Tensor:
         return self.scenes[0].K
 
-    def warps(self, depth: torch.Tensor) -> list[tuple[torch.Tensor, torch.Tensor]]:
-        """(warped reference, valid mask) of each reference for ``depth`` ``(B, 1, H, W)``."""
-        return [
-            inverse_warp(ref, depth, r, t, self.K)
-            for ref, (r, t) in zip(self.references, self.poses, strict=True)
-        ]
+    def warps(self, depth: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """:func:`inverse_warp` of both references for ``depth`` ``(B, 1, H, W)``, as one batch
+        with the constants precomputed: ``(2B, 3, H, W)`` warped frames and ``(2B, 1, H, W)``
+        valid masks, reference ``i`` of sample ``s`` at ``i·B + s``."""
+        n = len(self.references)
+        return inverse_warp_rays(
+            self.stacked_references, depth.repeat(n, 1, 1, 1), self.rays, self.offsets
+        )
 
     @torch.no_grad()
     def occlusions(self, depth: torch.Tensor) -> list[torch.Tensor]:
@@ -295,12 +312,15 @@ class Problem:
     def photometric(
         self, depth: torch.Tensor, occluded: list[torch.Tensor] | None = None
     ) -> torch.Tensor:
-        """L1 photometric loss per sample ``(B,)`` (α = 0), occluded pixels dropped if given."""
-        warps = self.warps(depth)
-        if occluded is None:
-            occluded = [None] * len(warps)
-        masks = [m if o is None else m & ~o for (_, m), o in zip(warps, occluded, strict=True)]
-        return photometric_loss(self.target, [w for w, _ in warps], masks, alpha=0.0)
+        """L1 photometric loss per sample ``(B,)`` (α = 0), occluded pixels dropped if given.
+
+        :func:`photometric_loss` (α = 0, no minimum: the sum over references of each one's
+        masked mean) computed on both references as one batch."""
+        warped, kept = self.warps(depth)
+        if occluded is not None:
+            kept = kept & ~torch.cat(occluded)
+        per_reference = masked_mean(l1_map(self.stacked_target, warped), kept)
+        return per_reference.reshape(len(self.references), -1).sum(0)
 
     def loss(
         self, depth: torch.Tensor, smooth: str | None, occluded: list[torch.Tensor] | None
