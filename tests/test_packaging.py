@@ -12,6 +12,8 @@ from __future__ import annotations
 import importlib.util
 import os
 import re
+import subprocess
+import sys
 import tomllib
 from pathlib import Path
 
@@ -67,3 +69,21 @@ def test_stats_reads_without_blender_but_flicker_renders(default_dataset, tmp_pa
     assert not out.exists()
     assert invoke_cli("stats", default_dataset, "--scenes", "2", "--out", out).returncode == 0
     assert (out / "stats.json").is_file()
+
+
+def test_the_benchmark_without_torch_is_a_one_line_error():
+    """stillbox-bench installed without the `bench` extra: one line naming it, exit code 2."""
+    code = (
+        "import importlib.util, sys\n"
+        "real = importlib.util.find_spec\n"
+        "importlib.util.find_spec = lambda n, *a: None if n == 'torch' else real(n, *a)\n"
+        "from benchmark.cli import main\n"
+        "main(['list'])\n"
+    )
+    proc = subprocess.run(
+        [sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=120
+    )
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr.splitlines() == [
+        "stillbox-bench: error: the benchmark needs PyTorch: pip install 'stillbox-gen[bench]'"
+    ]

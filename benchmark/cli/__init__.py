@@ -5,11 +5,19 @@ User mistakes print one line ``stillbox-bench: error: ...`` and exit with code 2
 
 from __future__ import annotations
 
+import importlib.util
 import sys
 
-import click
+if importlib.util.find_spec("torch") is None:  # installed without the `bench` extra
+    print(
+        "stillbox-bench: error: the benchmark needs PyTorch: pip install 'stillbox-gen[bench]'",
+        file=sys.stderr,
+    )
+    raise SystemExit(2)
 
-from . import supervised, unsupervised, video
+import click  # noqa: E402 - after the check, which must run before torch is imported below
+
+from . import supervised, unsupervised, video  # noqa: E402
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
