@@ -149,6 +149,14 @@ def test_bad_options_are_one_line_errors(tmp_path, args, flag):
     assert not (tmp_path / "out").exists()
 
 
+def test_out_that_is_a_file_is_refused_and_kept(tmp_path):
+    out = tmp_path / "out"
+    out.write_text("keep")
+    with pytest.raises(UserError, match=f"^--out: '{out}' is a file, not a folder$"):
+        _invoke("--out", out)
+    assert out.read_text() == "keep"
+
+
 # ---------------------------------------------------------------- on rendered toy scenes
 
 

@@ -14,13 +14,14 @@ from pathlib import Path
 import click
 import numpy as np
 
+from stillbox_gen.arguments import check_out_folder
 from stillbox_gen.formats import atomic_write_text
 
 from ..core import runfolder
 from ..unsupervised import toy as study
 from ..unsupervised import toy_plots
 from ..unsupervised.reprojection import SMOOTH_LOSSES
-from .options import UserError, torch_device, user_error
+from .options import DEVICE_OPTION, UserError, torch_device, user_error
 
 RESULTS_JSON = "results.json"
 TABLE_MD = "table.md"
@@ -168,12 +169,7 @@ def _summary(results: dict, seconds: float) -> str:
     help=f"A {len(study.QUICK_LAMBDAS)}x{len(study.QUICK_KAPPAS)} (λ, κ) grid and "
     f"{study.QUICK_ITERATIONS} iterations (CI).",
 )
-@click.option(
-    "--device",
-    default="auto",
-    show_default=True,
-    help="auto (CUDA when available), cpu, cuda or cuda:N.",
-)
+@DEVICE_OPTION
 @click.option(
     "--threads",
     type=int,
@@ -204,6 +200,7 @@ def toy_cmd(
     import torch
     from tqdm import tqdm
 
+    check_out_folder(out, error=UserError)
     _positive("--iterations", iterations)
     _positive("--odm-every", odm_every)
     _positive("--threads", threads)
