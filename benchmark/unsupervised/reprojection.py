@@ -423,6 +423,16 @@ def image_gradient_norm(image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor
     return forward, _norm(cx, cy).mean(1, keepdim=True)
 
 
+def edge_weights(
+    image: torch.Tensor, kappa: float | torch.Tensor, squared: bool
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The edge weights of the smooth losses: ``(B, 1, H−1, W−1)`` on the forward-difference grid
+    (TV, diffusion) and ``(B, 1, H−2, W−2)`` at the interior pixels (TVV, gradient diffusion),
+    ``exp(−(‖∇I‖/κ)²)`` (``squared``) or ``exp(−‖∇I‖/κ)``, κ a number or one per sample."""
+    fwd, lap = image_gradient_norm(image)
+    return _edge_weight(fwd, kappa, squared), _edge_weight(lap, kappa, squared)
+
+
 def _gradient_terms(
     xi: torch.Tensor, image: torch.Tensor, kappa: float | torch.Tensor, squared: bool
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

@@ -50,10 +50,18 @@ from stillbox_gen.conventions import MAX_DEPTH
 from stillbox_gen.dataset import Dataset
 
 from ..core.metrics import MIN_DEPTH
+from . import toy_kernels
 from .reprojection import (
+    MAX_SQUARE,
+    ODM_DEPTH_RATIO,
+    ODM_DILATION,
+    ROBUST_STEP,
+    ROBUST_STEPS,
     SMOOTH_LOSSES,
+    edge_weights,
     inverse_warp,
     inverse_warp_rays,
+    invert_pose,
     l1_map,
     masked_mean,
     occlusion_mask,
@@ -250,6 +258,7 @@ class Problem:
     target: torch.Tensor = field(init=False)
     references: list[torch.Tensor] = field(init=False)
     poses: list[tuple[torch.Tensor, torch.Tensor]] = field(init=False)
+    _arrays: KernelArrays | None = field(init=False, default=None, repr=False)
 
     def __post_init__(self) -> None:
         g = self.points
@@ -279,6 +288,12 @@ class Problem:
         self.valid = rep(torch.cat([s.valid for s in self.scenes]))
         self.lam = self.lambdas.repeat(len(self.scenes))
         self.kap = self.kappas.repeat(len(self.scenes))
+
+    def arrays(self) -> KernelArrays:
+        """The problem's constants as the arrays of :mod:`toy_kernels` (computed once)."""
+        if self._arrays is None:
+            self._arrays = KernelArrays.of(self)
+        return self._arrays
 
     @property
     def points(self) -> int:
@@ -337,6 +352,123 @@ class Problem:
         return total + self.lam * torch.cat(parts)
 
 
+#: Losses whose edge weight is ``exp(−‖∇I‖/κ)`` (the others: ``exp(−(‖∇I‖/κ)²)``).
+_UNSQUARED = ("tv", "tvv")
+#: Adam's constants (torch.optim.Adam's defaults).
+ADAM_BETAS = (0.9, 0.999)
+ADAM_EPS = 1e-8
+
+
+def _np(x: torch.Tensor, dtype: type = np.float32) -> np.ndarray:
+    return np.ascontiguousarray(x.detach().cpu().numpy().astype(dtype))
+
+
+@dataclass
+class KernelArrays:
+    """A :class:`Problem`'s constants for :mod:`toy_kernels` (CPU numpy, float32): per scene
+    ``S`` the target ``(S, C, H, W)``, the references ``(S, R, C, H, W)``, the warp constants of
+    each reference's pose and of its inverse (``rays`` ``(S, R, 3, H, W)``, ``offsets``
+    ``(S, R, 3)``), and per sample ``B`` its scene ``(B,)`` and λ ``(B,)`` (float64)."""
+
+    scene: np.ndarray
+    lam: np.ndarray
+    target: np.ndarray
+    refs: np.ndarray
+    rays: np.ndarray
+    offsets: np.ndarray
+    back_rays: np.ndarray
+    back_offsets: np.ndarray
+    weights: dict[bool, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+
+    @classmethod
+    def of(cls, problem: Problem) -> KernelArrays:
+        scenes = [s.to("cpu") for s in problem.scenes]
+        h, w = scenes[0].frames.shape[2:]
+        rays, offsets, back_rays, back_offsets = [], [], [], []
+        for s in scenes:
+            for r, t in s.poses:
+                a, c = warp_rays(r, t, s.K, h, w)
+                rays.append(a[0])
+                offsets.append(c.reshape(3))
+                a, c = warp_rays(*invert_pose(r, t), s.K, h, w)
+                back_rays.append(a[0])
+                back_offsets.append(c.reshape(3))
+        n, refs = len(scenes), len(REFERENCES)
+
+        def stack(xs: list[torch.Tensor]) -> np.ndarray:
+            t = torch.stack(xs)
+            return _np(t.reshape(n, refs, *t.shape[1:]))
+
+        return cls(
+            scene=np.repeat(np.arange(n), problem.points),
+            lam=_np(problem.lam, np.float64),
+            target=_np(torch.cat([s.target for s in scenes])),
+            refs=_np(
+                torch.stack([torch.cat([s.reference(i) for i in range(refs)]) for s in scenes])
+            ),
+            rays=stack(rays),
+            offsets=stack(offsets),
+            back_rays=stack(back_rays),
+            back_offsets=stack(back_offsets),
+        )
+
+    def edge_weights(self, problem: Problem, smooth: str) -> tuple[np.ndarray, np.ndarray]:
+        """Each sample's edge weights ``(B, H−1, W−1)`` and ``(B, H−2, W−2)`` for ``smooth``."""
+        squared = smooth not in _UNSQUARED
+        if squared not in self.weights:
+            kap = problem.kappas.cpu()
+            parts = [edge_weights(s.target.cpu(), kap, squared) for s in problem.scenes]
+            self.weights[squared] = (
+                _np(torch.cat([f for f, _ in parts])[:, 0]),
+                _np(torch.cat([lap for _, lap in parts])[:, 0]),
+            )
+        return self.weights[squared]
+
+
+class _Kernels:
+    """One optimisation's state on the CPU kernels: ``depth``, Adam's moments, the gradient
+    buffer and the ODM masks ``(B, R, H, W)``, all numpy."""
+
+    def __init__(self, problem: Problem, smooth: str | None, depth: np.ndarray) -> None:
+        self.problem, self.a, self.smooth = problem, problem.arrays(), smooth
+        self.depth = depth
+        self.m, self.v = np.zeros_like(depth), np.zeros_like(depth)
+        self.grad = np.zeros_like(depth)
+        b, h, w = depth.shape
+        self.occluded = np.zeros((b, len(REFERENCES), h, w), dtype=np.bool_)
+        self.use_occ = False
+        if smooth is not None:
+            self.code = toy_kernels.SMOOTH_CODES[smooth]
+            self.wf, self.wl = self.a.edge_weights(problem, smooth)
+
+    def occlusions(self) -> None:
+        a = self.a
+        toy_kernels.occlusions(self.depth, a.scene, a.rays, a.offsets, a.back_rays,
+                               a.back_offsets, ODM_DEPTH_RATIO, ODM_DILATION, MAX_SQUARE,
+                               self.occluded)  # fmt: skip
+        self.use_occ = True
+
+    def photometric(self) -> np.ndarray:
+        """Photometric loss ``(B,)``; its gradient in ``self.grad`` (overwritten)."""
+        a = self.a
+        return toy_kernels.photometric(self.depth, a.scene, a.target, a.refs, a.rays, a.offsets,
+                                       self.occluded, self.use_occ, self.grad)  # fmt: skip
+
+    def step(self, t: int, lr: float) -> None:
+        """Adam step ``t`` (from 1) on the gradient of the photometric + smooth loss."""
+        self.photometric()
+        if self.smooth is not None:
+            toy_kernels.smooth(self.code, self.depth, self.wf, self.wl, self.a.lam,
+                               ROBUST_STEPS, ROBUST_STEP, self.grad)  # fmt: skip
+        toy_kernels.adam_step(self.depth, self.grad, self.m, self.v, t, lr, *ADAM_BETAS,
+                              ADAM_EPS, MIN_DEPTH, MAX_DEPTH)  # fmt: skip
+
+    def masks(self, device: torch.device) -> list[torch.Tensor]:
+        """The ODM masks as :meth:`Problem.occlusions` gives them."""
+        occ = torch.from_numpy(self.occluded.copy()).to(device)
+        return [occ[:, i : i + 1] for i in range(occ.shape[1])]
+
+
 @dataclass
 class RunResult:
     """One batched optimisation: final depth ``(B, 1, H, W)``, final LE ``(B,)``, the LE
@@ -372,34 +504,32 @@ def optimise(
     """
     b = problem.target.shape[0]
     h, w = problem.target.shape[2:]
+    device = problem.target.device
     if start is None:
-        start = torch.full((b, 1, h, w), START_DEPTH, device=problem.target.device)
-    depth = start.clone().clamp(MIN_DEPTH, MAX_DEPTH).requires_grad_(True)
-    opt = torch.optim.Adam([depth], lr=lr)
+        start = torch.full((b, 1, h, w), START_DEPTH)
+    depth = _np(start.clamp(MIN_DEPTH, MAX_DEPTH)[:, 0])
+    state = _Kernels(problem, smooth, depth)
+    truth, valid = problem.truth.cpu(), problem.valid.cpu()
     every = max(1, iterations // HISTORY_POINTS)
-    history, steps, occluded = [], [], None
+    history, steps = [], []
     t0, c0 = time.perf_counter(), time.process_time()
     for it in range(iterations):
         if odm_every and it % odm_every == 0:
-            occluded = problem.occlusions(depth.detach())
+            state.occlusions()
         if it % every == 0:
-            history.append(log_error(depth.detach(), problem.truth, problem.valid).cpu().numpy())
+            history.append(log_error(torch.from_numpy(depth)[:, None], truth, valid).numpy())
             steps.append(it)
-        opt.zero_grad(set_to_none=True)
-        problem.loss(depth, smooth, occluded).sum().backward()
-        opt.step()
-        with torch.no_grad():
-            depth.clamp_(MIN_DEPTH, MAX_DEPTH)
+        state.step(it + 1, lr)
         if on_step is not None:
             on_step()
-    final = depth.detach()
-    with torch.no_grad():
-        le = log_error(final, problem.truth, problem.valid).cpu().numpy()
-        photo = problem.photometric(final, occluded).cpu().numpy()
+    final = torch.from_numpy(depth.copy())[:, None]
+    le = log_error(final, truth, valid).numpy()
+    photo = state.photometric()
     history.append(le)
     steps.append(iterations)
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
-    return RunResult(final, le, np.stack(history), steps, occluded, photo, wall, cpu)
+    occluded = state.masks(device) if state.use_occ else None
+    return RunResult(final.to(device), le, np.stack(history), steps, occluded, photo, wall, cpu)
 
 
 def initial_log_errors(scenes: Sequence[ToyScene]) -> dict[str, float]:

@@ -1,0 +1,414 @@
+"""Fused CPU kernels of the toy study's optimiser (numba): loss gradients, Adam and the ODM.
+
+In the toy problems (:mod:`benchmark.unsupervised.toy`) the depth values are the parameters and
+the frames are fixed, so every term has a gradient that can be written per pixel:
+
+- the L1 photometric loss is separable: pixel ``p``'s error depends only on ``θ(p)`` through
+  the inverse warp ``θ·a(p) + c`` (:func:`benchmark.unsupervised.reprojection.warp_rays`), so one
+  pass computes each pixel's error, its derivative through the bilinear weights, and the
+  masked means of both references (:func:`photometric`);
+- the smooth losses are stencils on ``ξ = 1/θ`` whose gradients are derived by hand, the robust
+  ones' 10 inner descent steps included (:func:`smooth`);
+- Adam is element-wise (:func:`adam_step`), and the ODM's z-buffer (Algorithm 1) is a loop over
+  source pixels (:func:`occlusions`).
+
+They compute exactly the forms of :mod:`~benchmark.unsupervised.reprojection` (the reference
+implementation, torch and autograd, kept for chapter 5's networks); tests/test_toy_kernels.py
+checks losses and gradients against it. Arrays are float32 ``(B, H, W)`` depth maps (one
+problem per sample ``b``), the frames and constants of each scene indexed by ``scene[b]``;
+intermediate sums are float64, in a fixed order. Every kernel runs its samples with ``prange``:
+a sample is computed by one thread, start to end, so results do not depend on the number of
+threads (``numba.set_num_threads``). No fastmath.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+
+#: Codes of the smooth losses in :func:`smooth` (the names of reprojection.SMOOTH_LOSSES).
+SMOOTH_CODES = {
+    "tv": 0,
+    "tvv": 1,
+    "diffusion": 2,
+    "gradient_diffusion": 3,
+    "robust_diffusion": 4,
+    "robust_gradient_diffusion": 5,
+}
+#: As reprojection._RayProjection: the projected depth is clamped to this before dividing.
+_MIN_Z = 1e-6
+
+
+# ---------------------------------------------------------------- photometric
+
+
+@njit(cache=True)
+def _sample(img, c, ix, iy, h, w):  # noqa: ANN001, ANN202
+    """Bilinear value of channel ``c`` at source coordinates (ix, iy) (already clipped to the
+    image, as grid_sample's border padding) and its derivatives in ix and iy; corners outside
+    the image count as 0, as in torch's grid_sample."""
+    x0 = math.floor(ix)
+    y0 = math.floor(iy)
+    x1, y1 = x0 + 1, y0 + 1
+    e = ix - x0
+    s = iy - y0
+    nw = img[c, y0, x0]
+    ne = img[c, y0, x1] if x1 < w else 0.0
+    sw = img[c, y1, x0] if y1 < h else 0.0
+    se = img[c, y1, x1] if (x1 < w and y1 < h) else 0.0
+    val = nw * (1 - e) * (1 - s) + ne * e * (1 - s) + sw * (1 - e) * s + se * e * s
+    dx = (ne - nw) * (1 - s) + (se - sw) * s
+    dy = (sw - nw) * (1 - e) + (se - ne) * e
+    return val, dx, dy
+
+
+@njit(cache=True)
+def _photometric_one(depth, target, refs, rays, offsets, occluded, use_occ, grad, tmp):  # noqa: ANN001, ANN202
+    """One sample's loss (sum over references of the masked mean L1) and its gradient, added
+    to ``grad`` ``(H, W)``; ``tmp`` ``(H, W)`` scratch."""
+    h, w = depth.shape
+    channels = target.shape[0]
+    total = 0.0
+    for r in range(refs.shape[0]):
+        acc = 0.0
+        count = 0
+        for i in range(h):
+            for j in range(w):
+                tmp[i, j] = 0.0
+                t = depth[i, j]
+                z = offsets[r, 2] + t * rays[r, 2, i, j]
+                inv = 1.0 / max(z, _MIN_Z)
+                x = (offsets[r, 0] + t * rays[r, 0, i, j]) * inv
+                y = (offsets[r, 1] + t * rays[r, 1, i, j]) * inv
+                if not (x >= 0 and x <= w - 1 and y >= 0 and y <= h - 1 and z > 0 and t > 0):
+                    continue
+                if use_occ and occluded[r, i, j]:
+                    continue
+                err = 0.0
+                gx = 0.0
+                gy = 0.0
+                for c in range(channels):
+                    val, dx, dy = _sample(refs[r], c, x, y, h, w)
+                    diff = val - target[c, i, j]
+                    err += abs(diff)
+                    sign = 1.0 if diff > 0 else (-1.0 if diff < 0 else 0.0)
+                    gx += sign * dx
+                    gy += sign * dy
+                acc += err / channels
+                count += 1
+                ax = rays[r, 0, i, j] - rays[r, 2, i, j] * x
+                ay = rays[r, 1, i, j] - rays[r, 2, i, j] * y
+                tmp[i, j] = (ax * gx + ay * gy) * inv / channels
+        if count > 0:
+            total += acc / count
+            for i in range(h):
+                for j in range(w):
+                    grad[i, j] += tmp[i, j] / count
+    return total
+
+
+@njit(parallel=True, cache=True)
+def photometric(depth, scene, target, refs, rays, offsets, occluded, use_occ, grad):  # noqa: ANN001, ANN201
+    """L1 photometric loss per sample ``(B,)`` float64, its gradient in θ written to ``grad``.
+
+    ``depth`` ``(B, H, W)`` metres; ``scene`` ``(B,)`` int; ``target`` ``(S, C, H, W)``;
+    ``refs`` ``(S, R, C, H, W)``; ``rays`` ``(S, R, 3, H, W)`` and ``offsets`` ``(S, R, 3)``
+    (:func:`~benchmark.unsupervised.reprojection.warp_rays`); ``occluded`` ``(B, R, H, W)``
+    bool, read only if ``use_occ``. ``grad`` ``(B, H, W)`` float32 is overwritten. A pixel is
+    kept where its point is in front of the reference and projects within the pixel centres
+    (:func:`~benchmark.unsupervised.reprojection.inverse_warp_rays`' valid mask) and is not
+    occluded; the error of a kept pixel is ``mean_c |Ĩ − I_t|``, sampled bilinearly.
+    """
+    b, h, w = depth.shape
+    out = np.zeros(b)
+    for k in prange(b):
+        s = scene[k]
+        g = np.zeros((h, w))
+        tmp = np.empty((h, w))
+        out[k] = _photometric_one(
+            depth[k], target[s], refs[s], rays[s], offsets[s], occluded[k], use_occ, g, tmp
+        )
+        for i in range(h):
+            for j in range(w):
+                grad[k, i, j] = g[i, j]
+    return out
+
+
+# ---------------------------------------------------------------- smooth losses
+
+
+@njit(cache=True)
+def _sign(v):  # noqa: ANN001, ANN202
+    return 1.0 if v > 0 else (-1.0 if v < 0 else 0.0)
+
+
+@njit(cache=True)
+def _gradient_loss(xi, wf, robust_power, g):  # noqa: ANN001, ANN202
+    """TV (power 1) or diffusion (power 2) on the (H−1, W−1) forward-difference grid."""
+    h, w = xi.shape
+    n = (h - 1) * (w - 1)
+    total = 0.0
+    for i in range(h - 1):
+        for j in range(w - 1):
+            gx = xi[i, j + 1] - xi[i, j]
+            gy = xi[i + 1, j] - xi[i, j]
+            if robust_power == 2:
+                total += wf[i, j] * (gx * gx + gy * gy)
+                cx = 2 * wf[i, j] * gx / n
+                cy = 2 * wf[i, j] * gy / n
+            else:
+                norm = math.sqrt(gx * gx + gy * gy)
+                total += wf[i, j] * norm
+                if norm > 0:
+                    cx = wf[i, j] * gx / norm / n
+                    cy = wf[i, j] * gy / norm / n
+                else:
+                    cx = 0.0
+                    cy = 0.0
+            g[i, j + 1] += cx
+            g[i, j] -= cx + cy
+            g[i + 1, j] += cy
+    return total / n
+
+
+@njit(cache=True)
+def _laplacian(xi, i, j):  # noqa: ANN001, ANN202
+    """The 5-point Laplacian at interior pixel (i, j), as reprojection._divergence sums it."""
+    return (
+        (xi[i, j + 1] - xi[i, j])
+        - (xi[i, j] - xi[i, j - 1])
+        + ((xi[i + 1, j] - xi[i, j]) - (xi[i, j] - xi[i - 1, j]))
+    )
+
+
+@njit(cache=True)
+def _laplacian_loss(xi, wl, power, g):  # noqa: ANN001, ANN202
+    """TVV (power 1) or gradient diffusion (power 2) at the interior pixels; ``wl`` (H−2, W−2)."""
+    h, w = xi.shape
+    n = (h - 2) * (w - 2)
+    total = 0.0
+    for i in range(1, h - 1):
+        for j in range(1, w - 1):
+            lap = _laplacian(xi, i, j)
+            wt = wl[i - 1, j - 1]
+            if power == 2:
+                total += wt * lap * lap
+                c = 2 * wt * lap / n
+            else:
+                total += wt * abs(lap)
+                c = wt * _sign(lap) / n
+            g[i, j + 1] += c
+            g[i, j - 1] += c
+            g[i + 1, j] += c
+            g[i - 1, j] += c
+            g[i, j] -= 4 * c
+    return total / n
+
+
+@njit(cache=True)
+def _robust_diffusion(xi, wf, steps, step, g):  # noqa: ANN001, ANN202
+    """MSE between ξ and a copy diffused by ``steps`` descent steps on Σ w·‖∇ξ‖²."""
+    h, w = xi.shape
+    s = xi.copy()
+    d = np.zeros((h, w))
+    for _ in range(steps):
+        d[:] = 0.0
+        for i in range(h - 1):
+            for j in range(w - 1):
+                cx = 2 * wf[i, j] * (s[i, j + 1] - s[i, j])
+                cy = 2 * wf[i, j] * (s[i + 1, j] - s[i, j])
+                d[i, j + 1] += cx
+                d[i, j] -= cx + cy
+                d[i + 1, j] += cy
+        for i in range(h):
+            for j in range(w):
+                s[i, j] -= step * d[i, j]
+    n = h * w
+    total = 0.0
+    for i in range(h):
+        for j in range(w):
+            e = xi[i, j] - s[i, j]
+            total += e * e
+            g[i, j] += 2 * e / n
+    return total / n
+
+
+@njit(cache=True)
+def _robust_gradient_diffusion(xi, wl, steps, step, g):  # noqa: ANN001, ANN202
+    """MSE between ∇ξ and a copy of it diffused by ``steps`` descent steps on Σ w·(div A)²."""
+    h, w = xi.shape
+    ax = np.empty((h, w - 1))
+    ay = np.empty((h - 1, w))
+    for i in range(h):
+        for j in range(w - 1):
+            ax[i, j] = xi[i, j + 1] - xi[i, j]
+    for i in range(h - 1):
+        for j in range(w):
+            ay[i, j] = xi[i + 1, j] - xi[i, j]
+    sx = ax.copy()
+    sy = ay.copy()
+    dx = np.zeros((h, w - 1))
+    dy = np.zeros((h - 1, w))
+    for _ in range(steps):
+        dx[:] = 0.0
+        dy[:] = 0.0
+        for i in range(1, h - 1):
+            for j in range(1, w - 1):
+                div = (sx[i, j] - sx[i, j - 1]) + (sy[i, j] - sy[i - 1, j])
+                c = 2 * wl[i - 1, j - 1] * div
+                dx[i, j] += c
+                dx[i, j - 1] -= c
+                dy[i, j] += c
+                dy[i - 1, j] -= c
+        for i in range(h):
+            for j in range(w - 1):
+                sx[i, j] -= step * dx[i, j]
+        for i in range(h - 1):
+            for j in range(w):
+                sy[i, j] -= step * dy[i, j]
+    n = h * (w - 1) + (h - 1) * w
+    total = 0.0
+    for i in range(h):
+        for j in range(w - 1):
+            e = ax[i, j] - sx[i, j]
+            total += e * e
+            c = 2 * e / n
+            g[i, j + 1] += c
+            g[i, j] -= c
+    for i in range(h - 1):
+        for j in range(w):
+            e = ay[i, j] - sy[i, j]
+            total += e * e
+            c = 2 * e / n
+            g[i + 1, j] += c
+            g[i, j] -= c
+    return total / n
+
+
+@njit(cache=True)
+def _smooth_one(code, xi, wf, wl, steps, step, g):  # noqa: ANN001, ANN202
+    if code == 0:
+        return _gradient_loss(xi, wf, 1, g)
+    if code == 1:
+        return _laplacian_loss(xi, wl, 1, g)
+    if code == 2:
+        return _gradient_loss(xi, wf, 2, g)
+    if code == 3:
+        return _laplacian_loss(xi, wl, 2, g)
+    if code == 4:
+        return _robust_diffusion(xi, wf, steps, step, g)
+    return _robust_gradient_diffusion(xi, wl, steps, step, g)
+
+
+@njit(parallel=True, cache=True)
+def smooth(code, depth, weight_fwd, weight_lap, lam, steps, step, grad):  # noqa: ANN001, ANN201
+    """Smooth loss ``code`` (:data:`SMOOTH_CODES`) of ``ξ = 1/θ`` per sample ``(B,)`` float64,
+    and ``λ·∂L_s/∂θ`` *added* to ``grad`` ``(B, H, W)``.
+
+    ``weight_fwd`` ``(B, H−1, W−1)`` and ``weight_lap`` ``(B, H−2, W−2)``: each sample's edge
+    weights (reprojection._gradient_terms / _laplacian_terms' ``w``, exponent as the loss
+    needs); ``lam`` ``(B,)``; ``steps``, ``step``: the robust losses' inner descent.
+    """
+    b, h, w = depth.shape
+    out = np.zeros(b)
+    for k in prange(b):
+        xi = np.empty((h, w))
+        for i in range(h):
+            for j in range(w):
+                xi[i, j] = 1.0 / depth[k, i, j]
+        g = np.zeros((h, w))
+        out[k] = _smooth_one(code, xi, weight_fwd[k], weight_lap[k], steps, step, g)
+        for i in range(h):
+            for j in range(w):
+                grad[k, i, j] += lam[k] * g[i, j] * (-xi[i, j] * xi[i, j])
+    return out
+
+
+# ---------------------------------------------------------------- Adam
+
+
+@njit(parallel=True, cache=True)
+def adam_step(param, grad, m, v, t, lr, beta1, beta2, eps, low, high):  # noqa: ANN001, ANN201
+    """One Adam step (torch.optim.Adam's update, step number ``t`` ≥ 1) on ``param`` in place,
+    then ``param`` clamped to ``[low, high]``; all ``(B, H, W)``."""
+    b, h, w = param.shape
+    bc1 = 1 - beta1**t
+    bc2 = math.sqrt(1 - beta2**t)
+    size = lr / bc1
+    for k in prange(b):
+        for i in range(h):
+            for j in range(w):
+                gr = grad[k, i, j]
+                m[k, i, j] = m[k, i, j] + (gr - m[k, i, j]) * (1 - beta1)
+                v[k, i, j] = v[k, i, j] * beta2 + (1 - beta2) * gr * gr
+                p = param[k, i, j] - size * m[k, i, j] / (math.sqrt(v[k, i, j]) / bc2 + eps)
+                param[k, i, j] = min(max(p, low), high)
+
+
+# ---------------------------------------------------------------- occlusion detection
+
+
+@njit(cache=True)
+def _direct_warp(depth, rays, offset, max_square, zbuf):  # noqa: ANN001, ANN202
+    """reprojection.direct_warp's z-buffer for one sample: ``zbuf`` ``(H, W)`` filled with the
+    nearest reference depth painted there (inf where none); squares in float32 as torch."""
+    h, w = depth.shape
+    zbuf[:] = np.inf
+    for i in range(h):
+        for j in range(w):
+            t = depth[i, j]
+            z = np.float32(offset[2] + t * rays[2, i, j])
+            inv = np.float32(1.0) / max(z, np.float32(_MIN_Z))
+            u = np.float32(np.float32(offset[0] + t * rays[0, i, j]) * inv)
+            v = np.float32(np.float32(offset[1] + t * rays[1, i, j]) * inv)
+            d = min(np.float32(t / z), np.float32(max_square))
+            u0 = np.float32(u - d / np.float32(2))
+            v0 = np.float32(v - d / np.float32(2))
+            if not (np.isfinite(u0) and np.isfinite(v0) and np.isfinite(z) and t > 0 and z > 0):
+                continue
+            uend = np.float32(u0 + d)
+            vend = np.float32(v0 + d)
+            yy = math.ceil(v0)
+            while yy < vend:
+                if 0 <= yy <= h - 1:
+                    xx = math.ceil(u0)
+                    while xx < uend:
+                        if 0 <= xx <= w - 1 and z < zbuf[yy, xx]:
+                            zbuf[yy, xx] = z
+                        xx += 1
+                yy += 1
+
+
+@njit(parallel=True, cache=True)
+def occlusions(
+    depth, scene, rays, offsets, back_rays, back_offsets, ratio, dilation, max_square, out
+):  # noqa: ANN001, ANN201, E501
+    """The ODM's "warp back" mask (reprojection.occlusion_mask) of every sample and reference,
+    written to ``out`` ``(B, R, H, W)`` bool: the depth painted into the reference by the direct
+    warp, painted back with the inverse pose, occluded where not within ``[θ/ratio, θ·ratio]``,
+    then dilated by ``dilation`` pixels. ``rays``/``offsets`` as :func:`photometric`,
+    ``back_*`` those of the inverse poses."""
+    b, h, w = depth.shape
+    refs = rays.shape[1]
+    for job in prange(b * refs):
+        k, r = job // refs, job % refs
+        s = scene[k]
+        fwd = np.empty((h, w), dtype=np.float32)
+        back = np.empty((h, w), dtype=np.float32)
+        _direct_warp(depth[k], rays[s, r], offsets[s, r], max_square, fwd)
+        _direct_warp(fwd, back_rays[s, r], back_offsets[s, r], max_square, back)
+        occ = np.empty((h, w), dtype=np.bool_)
+        for i in range(h):
+            for j in range(w):
+                t = depth[k, i, j]
+                occ[i, j] = not (back[i, j] >= t / ratio and back[i, j] <= t * ratio)
+        for i in range(h):
+            for j in range(w):
+                hit = False
+                for a in range(max(0, i - dilation), min(h, i + dilation + 1)):
+                    for c in range(max(0, j - dilation), min(w, j + dilation + 1)):
+                        if occ[a, c]:
+                            hit = True
+                out[k, r, i, j] = hit
