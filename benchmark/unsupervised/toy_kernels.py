@@ -44,95 +44,103 @@ _MIN_Z = 1e-6
 # ---------------------------------------------------------------- photometric
 
 
-@njit(cache=True)
-def _sample(img, c, ix, iy, h, w):  # noqa: ANN001, ANN202
-    """Bilinear value of channel ``c`` at source coordinates (ix, iy) (already clipped to the
-    image, as grid_sample's border padding) and its derivatives in ix and iy; corners outside
-    the image count as 0, as in torch's grid_sample."""
-    x0 = math.floor(ix)
-    y0 = math.floor(iy)
-    x1, y1 = x0 + 1, y0 + 1
-    e = ix - x0
-    s = iy - y0
-    nw = img[c, y0, x0]
-    ne = img[c, y0, x1] if x1 < w else 0.0
-    sw = img[c, y1, x0] if y1 < h else 0.0
-    se = img[c, y1, x1] if (x1 < w and y1 < h) else 0.0
-    val = nw * (1 - e) * (1 - s) + ne * e * (1 - s) + sw * (1 - e) * s + se * e * s
-    dx = (ne - nw) * (1 - s) + (se - sw) * s
-    dy = (sw - nw) * (1 - e) + (se - ne) * e
-    return val, dx, dy
+def bilinear_coefficients(image: np.ndarray) -> np.ndarray:
+    """Per pixel ``(y0, x0)`` of a ``(C, H, W)`` image, the coefficients ``(A, B, C, D)`` of the
+    bilinear interpolation ``A + B·e + C·f + D·e·f`` over the cell ``[x0, x0+1] × [y0, y0+1]``
+    (``e``, ``f`` the fractional parts), channel-last: ``(H, W, 4, C)`` float64. Corners outside
+    the image count as 0, as in grid_sample (which matters only to the derivative on the last
+    row and column)."""
+    c, h, w = image.shape
+    pad = np.zeros((h + 1, w + 1, c))
+    pad[:h, :w] = image.transpose(1, 2, 0)
+    nw, ne, sw, se = pad[:h, :w], pad[:h, 1:], pad[1:, :w], pad[1:, 1:]
+    return np.ascontiguousarray(np.stack([nw, ne - nw, sw - nw, nw - ne - sw + se], 2))
 
 
 @njit(cache=True)
-def _photometric_one(depth, target, refs, rays, offsets, occluded, use_occ, grad, tmp):  # noqa: ANN001, ANN202
-    """One sample's loss (sum over references of the masked mean L1) and its gradient, added
-    to ``grad`` ``(H, W)``; ``tmp`` ``(H, W)`` scratch."""
+def _photometric_one(depth, target, coef, rays, offsets, occluded, use_occ, grad, tmp):  # noqa: ANN001, ANN202
+    """One sample's loss (sum over references of the masked mean L1) and its gradient in θ,
+    written to ``grad`` ``(H, W)``; ``tmp`` ``(R, H, W)`` scratch (each reference's per-pixel
+    derivative before its division by the number of kept pixels)."""
+    refs = coef.shape[0]
     h, w = depth.shape
-    channels = target.shape[0]
-    total = 0.0
-    for r in range(refs.shape[0]):
-        acc = 0.0
-        count = 0
-        for i in range(h):
-            for j in range(w):
-                tmp[i, j] = 0.0
-                t = depth[i, j]
-                z = offsets[r, 2] + t * rays[r, 2, i, j]
+    channels = target.shape[2]
+    acc = np.zeros(refs)
+    count = np.zeros(refs, dtype=np.int64)
+    for i in range(h):
+        for j in range(w):
+            t = depth[i, j]
+            for r in range(refs):
+                az = rays[r, 2, i, j]
+                z = offsets[r, 2] + t * az
                 inv = 1.0 / max(z, _MIN_Z)
                 x = (offsets[r, 0] + t * rays[r, 0, i, j]) * inv
                 y = (offsets[r, 1] + t * rays[r, 1, i, j]) * inv
-                if not (x >= 0 and x <= w - 1 and y >= 0 and y <= h - 1 and z > 0 and t > 0):
+                ok = (x >= 0) & (x <= w - 1) & (y >= 0) & (y <= h - 1) & (z > 0) & (t > 0)
+                if not ok or (use_occ and occluded[r, i, j]):
+                    tmp[r, i, j] = 0.0
                     continue
-                if use_occ and occluded[r, i, j]:
-                    continue
+                x0 = int(x)
+                y0 = int(y)
+                e = x - x0
+                f = y - y0
                 err = 0.0
                 gx = 0.0
                 gy = 0.0
                 for c in range(channels):
-                    val, dx, dy = _sample(refs[r], c, x, y, h, w)
-                    diff = val - target[c, i, j]
+                    a0 = coef[r, y0, x0, 0, c]
+                    bx = coef[r, y0, x0, 1, c]
+                    cy = coef[r, y0, x0, 2, c]
+                    dxy = coef[r, y0, x0, 3, c]
+                    diff = a0 + bx * e + (cy + dxy * e) * f - target[i, j, c]
+                    sign = (diff > 0) - (diff < 0)
                     err += abs(diff)
-                    sign = 1.0 if diff > 0 else (-1.0 if diff < 0 else 0.0)
-                    gx += sign * dx
-                    gy += sign * dy
-                acc += err / channels
-                count += 1
-                ax = rays[r, 0, i, j] - rays[r, 2, i, j] * x
-                ay = rays[r, 1, i, j] - rays[r, 2, i, j] * y
-                tmp[i, j] = (ax * gx + ay * gy) * inv / channels
-        if count > 0:
-            total += acc / count
-            for i in range(h):
-                for j in range(w):
-                    grad[i, j] += tmp[i, j] / count
+                    gx += sign * (bx + dxy * f)
+                    gy += sign * (cy + dxy * e)
+                acc[r] += err / channels
+                count[r] += 1
+                ax = rays[r, 0, i, j] - az * x
+                ay = rays[r, 1, i, j] - az * y
+                tmp[r, i, j] = (ax * gx + ay * gy) * inv / channels
+    total = 0.0
+    for r in range(refs):
+        if count[r] > 0:
+            total += acc[r] / count[r]
+        count[r] = max(count[r], 1)
+    for i in range(h):
+        for j in range(w):
+            g = 0.0
+            for r in range(refs):
+                g += tmp[r, i, j] / count[r]
+            grad[i, j] = g
     return total
 
 
 @njit(parallel=True, cache=True)
-def photometric(depth, scene, target, refs, rays, offsets, occluded, use_occ, grad):  # noqa: ANN001, ANN201
+def photometric(depth, scene, target, coef, rays, offsets, occluded, use_occ, grad):  # noqa: ANN001, ANN201
     """L1 photometric loss per sample ``(B,)`` float64, its gradient in θ written to ``grad``.
 
-    ``depth`` ``(B, H, W)`` metres; ``scene`` ``(B,)`` int; ``target`` ``(S, C, H, W)``;
-    ``refs`` ``(S, R, C, H, W)``; ``rays`` ``(S, R, 3, H, W)`` and ``offsets`` ``(S, R, 3)``
+    ``depth`` ``(B, H, W)`` metres; ``scene`` ``(B,)`` int; ``target`` ``(S, H, W, C)``
+    (channel-last); ``coef`` ``(S, R, H, W, 4, C)`` the references'
+    :func:`bilinear_coefficients`; ``rays`` ``(S, R, 3, H, W)`` and ``offsets`` ``(S, R, 3)``
     (:func:`~benchmark.unsupervised.reprojection.warp_rays`); ``occluded`` ``(B, R, H, W)``
-    bool, read only if ``use_occ``. ``grad`` ``(B, H, W)`` float32 is overwritten. A pixel is
-    kept where its point is in front of the reference and projects within the pixel centres
-    (:func:`~benchmark.unsupervised.reprojection.inverse_warp_rays`' valid mask) and is not
-    occluded; the error of a kept pixel is ``mean_c |Ĩ − I_t|``, sampled bilinearly.
+    bool, read only if ``use_occ``. ``grad`` ``(B, H, W)`` float32 is overwritten.
+
+    As :meth:`benchmark.unsupervised.toy.Problem.photometric`: a pixel is kept where its point
+    is in front of the reference and projects within the pixel centres (``inverse_warp_rays``'
+    valid mask) and is not occluded; its error is ``mean_c |Ĩ − I_t|``, with ``Ĩ`` sampled
+    bilinearly (grid_sample's, align_corners), and its derivative goes through the bilinear
+    weights, ``∂x/∂θ = (a_x − a_z·x)/z``; the loss is the sum over references of the mean
+    error over the kept pixels.
     """
     b, h, w = depth.shape
     out = np.zeros(b)
     for k in prange(b):
         s = scene[k]
-        g = np.zeros((h, w))
-        tmp = np.empty((h, w))
+        tmp = np.empty((coef.shape[1], h, w))
         out[k] = _photometric_one(
-            depth[k], target[s], refs[s], rays[s], offsets[s], occluded[k], use_occ, g, tmp
+            depth[k], target[s], coef[s], rays[s], offsets[s], occluded[k], use_occ, grad[k], tmp
         )
-        for i in range(h):
-            for j in range(w):
-                grad[k, i, j] = g[i, j]
     return out
 
 
