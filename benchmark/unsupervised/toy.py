@@ -396,9 +396,9 @@ class KernelArrays:
                 back_offsets.append(c.reshape(3))
         n, refs = len(scenes), len(REFERENCES)
 
-        def stack(xs: list[torch.Tensor]) -> np.ndarray:
+        def stack(xs: list[torch.Tensor], dtype: type = np.float32) -> np.ndarray:
             t = torch.stack(xs)
-            return _np(t.reshape(n, refs, *t.shape[1:]))
+            return _np(t.reshape(n, refs, *t.shape[1:]), dtype)
 
         return cls(
             scene=np.repeat(np.arange(n), problem.points),
@@ -415,8 +415,8 @@ class KernelArrays:
                     for s in scenes
                 ]
             ),
-            rays=stack(rays),
-            offsets=stack(offsets),
+            rays=stack(rays, np.float64),  # float32 values, stored wide: no conversions
+            offsets=stack(offsets, np.float64),
             back_rays=stack(back_rays),
             back_offsets=stack(back_offsets),
         )

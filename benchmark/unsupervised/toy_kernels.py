@@ -217,22 +217,25 @@ def _laplacian_loss(xi, wl, power, g):  # noqa: ANN001, ANN202
 
 @njit(cache=True)
 def _robust_diffusion(xi, wf, steps, step, g):  # noqa: ANN001, ANN202
-    """MSE between ξ and a copy diffused by ``steps`` descent steps on Σ w·‖∇ξ‖²."""
+    """MSE between ξ and a copy diffused by ``steps`` descent steps on ``Σ w·‖∇ξ‖²``, whose
+    gradient is ``−div(2w·∇s)`` (the fluxes ``cx``, ``cy`` are 0 on the last column / row)."""
     h, w = xi.shape
     s = xi.copy()
-    d = np.zeros((h, w))
+    cx = np.zeros((h, w))
+    cy = np.zeros((h, w))
     for _ in range(steps):
-        d[:] = 0.0
         for i in range(h - 1):
             for j in range(w - 1):
-                cx = 2 * wf[i, j] * (s[i, j + 1] - s[i, j])
-                cy = 2 * wf[i, j] * (s[i + 1, j] - s[i, j])
-                d[i, j + 1] += cx
-                d[i, j] -= cx + cy
-                d[i + 1, j] += cy
+                cx[i, j] = 2 * wf[i, j] * (s[i, j + 1] - s[i, j])
+                cy[i, j] = 2 * wf[i, j] * (s[i + 1, j] - s[i, j])
         for i in range(h):
             for j in range(w):
-                s[i, j] -= step * d[i, j]
+                d = -cx[i, j] - cy[i, j]
+                if j > 0:
+                    d += cx[i, j - 1]
+                if i > 0:
+                    d += cy[i - 1, j]
+                s[i, j] -= step * d
     n = h * w
     total = 0.0
     for i in range(h):
@@ -245,7 +248,8 @@ def _robust_diffusion(xi, wf, steps, step, g):  # noqa: ANN001, ANN202
 
 @njit(cache=True)
 def _robust_gradient_diffusion(xi, wl, steps, step, g):  # noqa: ANN001, ANN202
-    """MSE between ∇ξ and a copy of it diffused by ``steps`` descent steps on Σ w·(div A)²."""
+    """MSE between ∇ξ and a copy ``A`` of it diffused by ``steps`` descent steps on
+    ``Σ w·(div A)²``, whose gradient is ``−∇(2w·div A)`` (``c = 2w·div A``, 0 off the interior)."""
     h, w = xi.shape
     ax = np.empty((h, w - 1))
     ay = np.empty((h - 1, w))
@@ -257,41 +261,34 @@ def _robust_gradient_diffusion(xi, wl, steps, step, g):  # noqa: ANN001, ANN202
             ay[i, j] = xi[i + 1, j] - xi[i, j]
     sx = ax.copy()
     sy = ay.copy()
-    dx = np.zeros((h, w - 1))
-    dy = np.zeros((h - 1, w))
+    c = np.zeros((h, w))
     for _ in range(steps):
-        dx[:] = 0.0
-        dy[:] = 0.0
         for i in range(1, h - 1):
             for j in range(1, w - 1):
                 div = (sx[i, j] - sx[i, j - 1]) + (sy[i, j] - sy[i - 1, j])
-                c = 2 * wl[i - 1, j - 1] * div
-                dx[i, j] += c
-                dx[i, j - 1] -= c
-                dy[i, j] += c
-                dy[i - 1, j] -= c
+                c[i, j] = 2 * wl[i - 1, j - 1] * div
         for i in range(h):
             for j in range(w - 1):
-                sx[i, j] -= step * dx[i, j]
+                sx[i, j] -= step * (c[i, j] - c[i, j + 1])
         for i in range(h - 1):
             for j in range(w):
-                sy[i, j] -= step * dy[i, j]
+                sy[i, j] -= step * (c[i, j] - c[i + 1, j])
     n = h * (w - 1) + (h - 1) * w
     total = 0.0
     for i in range(h):
         for j in range(w - 1):
             e = ax[i, j] - sx[i, j]
             total += e * e
-            c = 2 * e / n
-            g[i, j + 1] += c
-            g[i, j] -= c
+            d = 2 * e / n
+            g[i, j + 1] += d
+            g[i, j] -= d
     for i in range(h - 1):
         for j in range(w):
             e = ay[i, j] - sy[i, j]
             total += e * e
-            c = 2 * e / n
-            g[i + 1, j] += c
-            g[i, j] -= c
+            d = 2 * e / n
+            g[i + 1, j] += d
+            g[i, j] -= d
     return total / n
 
 
@@ -412,11 +409,24 @@ def occlusions(
             for j in range(w):
                 t = depth[k, i, j]
                 occ[i, j] = not (back[i, j] >= t / ratio and back[i, j] <= t * ratio)
-        for i in range(h):
-            for j in range(w):
-                hit = False
-                for a in range(max(0, i - dilation), min(h, i + dilation + 1)):
-                    for c in range(max(0, j - dilation), min(w, j + dilation + 1)):
-                        if occ[a, c]:
-                            hit = True
-                out[k, r, i, j] = hit
+        _dilate(occ, dilation, out[k, r])
+
+
+@njit(cache=True)
+def _dilate(occ, dilation, out):  # noqa: ANN001, ANN202
+    """``out`` = ``occ`` dilated by a square of side ``2·dilation + 1`` (max_pool2d's, the
+    image border not padded with True), separably: rows, then columns."""
+    h, w = occ.shape
+    rows = np.empty((h, w), dtype=np.bool_)
+    for i in range(h):
+        for j in range(w):
+            hit = False
+            for c in range(max(0, j - dilation), min(w, j + dilation + 1)):
+                hit = hit or occ[i, c]
+            rows[i, j] = hit
+    for i in range(h):
+        for j in range(w):
+            hit = False
+            for a in range(max(0, i - dilation), min(h, i + dilation + 1)):
+                hit = hit or rows[a, j]
+            out[i, j] = hit
