@@ -35,9 +35,9 @@ def test_blender_and_torch_are_extras_not_base_dependencies():
     project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
     base = _names(project["dependencies"])
     extras = {k: _names(v) for k, v in project["optional-dependencies"].items()}
-    assert not base & {"bpy", "torch", "kornia", "tensorboard"}
+    assert not base & {"bpy", "torch", "kornia", "tensorboard", "numba"}
     assert extras["gen"] == {"bpy"}
-    assert {"torch", "kornia", "tensorboard"} <= extras["bench"]
+    assert {"torch", "kornia", "tensorboard", "numba"} <= extras["bench"]
     assert "bpy" not in extras["bench"]
 
 

@@ -175,8 +175,9 @@ def _summary(results: dict, seconds: float) -> str:
     type=int,
     default=1,
     show_default=True,
-    help="Torch threads. 1 by default: on a shared machine OpenMP threads spin-wait for each "
-    "other (measured up to 10x slower with 2 threads on 2 busy cores).",
+    help="Threads of the optimiser's kernels (each depth map on one thread: the results do not "
+    "depend on it) and of torch. 1 by default: on a shared machine threads wait for each other "
+    "(measured up to 10x slower with 2 torch threads on 2 busy cores).",
 )
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 def toy_cmd(
@@ -197,6 +198,7 @@ def toy_cmd(
     Horizon by reprojection from frames t-1 and t+1, with the photometric loss alone and with
     each smooth loss over a log grid of (λ, κ), ODM off and on; report LE, M and ΔM beside the
     thesis' Table 4.1."""
+    import numba
     import torch
     from tqdm import tqdm
 
@@ -221,6 +223,7 @@ def toy_cmd(
     except ValueError as e:
         raise user_error(e) from None
     torch.set_num_threads(threads)
+    numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
     bar = tqdm(total=cfg.runs * cfg.iterations, unit="it", disable=quiet, dynamic_ncols=True)
     t0 = time.perf_counter()
     with bar:

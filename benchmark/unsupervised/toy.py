@@ -50,7 +50,6 @@ from stillbox_gen.conventions import MAX_DEPTH
 from stillbox_gen.dataset import Dataset
 
 from ..core.metrics import MIN_DEPTH
-from . import toy_kernels
 from .reprojection import (
     MAX_SQUARE,
     ODM_DEPTH_RATIO,
@@ -359,6 +358,14 @@ ADAM_BETAS = (0.9, 0.999)
 ADAM_EPS = 1e-8
 
 
+def _kernels():  # noqa: ANN202
+    """:mod:`toy_kernels`, imported when first needed (numba adds ~0.3 s to every command's
+    start otherwise)."""
+    from . import toy_kernels
+
+    return toy_kernels
+
+
 def _np(x: torch.Tensor, dtype: type = np.float32) -> np.ndarray:
     return np.ascontiguousarray(x.detach().cpu().numpy().astype(dtype))
 
@@ -408,7 +415,7 @@ class KernelArrays:
                 [
                     np.stack(
                         [
-                            toy_kernels.bilinear_coefficients(_np(s.reference(i)[0]))
+                            _kernels().bilinear_coefficients(_np(s.reference(i)[0]))
                             for i in range(refs)
                         ]
                     )
@@ -447,12 +454,12 @@ class _Kernels:
         self.occluded = np.zeros((b, len(REFERENCES), h, w), dtype=np.bool_)
         self.use_occ = False
         if smooth is not None:
-            self.code = toy_kernels.SMOOTH_CODES[smooth]
+            self.code = _kernels().SMOOTH_CODES[smooth]
             self.wf, self.wl = self.a.edge_weights(problem, smooth)
 
     def occlusions(self) -> None:
         a = self.a
-        toy_kernels.occlusions(self.depth, a.scene, a.rays, a.offsets, a.back_rays,
+        _kernels().occlusions(self.depth, a.scene, a.rays, a.offsets, a.back_rays,
                                a.back_offsets, ODM_DEPTH_RATIO, ODM_DILATION, MAX_SQUARE,
                                self.occluded)  # fmt: skip
         self.use_occ = True
@@ -460,16 +467,16 @@ class _Kernels:
     def photometric(self) -> np.ndarray:
         """Photometric loss ``(B,)``; its gradient in ``self.grad`` (overwritten)."""
         a = self.a
-        return toy_kernels.photometric(self.depth, a.scene, a.target, a.coef, a.rays, a.offsets,
+        return _kernels().photometric(self.depth, a.scene, a.target, a.coef, a.rays, a.offsets,
                                        self.occluded, self.use_occ, self.grad)  # fmt: skip
 
     def step(self, t: int, lr: float) -> None:
         """Adam step ``t`` (from 1) on the gradient of the photometric + smooth loss."""
         self.photometric()
         if self.smooth is not None:
-            toy_kernels.smooth(self.code, self.depth, self.wf, self.wl, self.a.lam,
+            _kernels().smooth(self.code, self.depth, self.wf, self.wl, self.a.lam,
                                ROBUST_STEPS, ROBUST_STEP, self.grad)  # fmt: skip
-        toy_kernels.adam_step(self.depth, self.grad, self.m, self.v, t, lr, *ADAM_BETAS,
+        _kernels().adam_step(self.depth, self.grad, self.m, self.v, t, lr, *ADAM_BETAS,
                               ADAM_EPS, MIN_DEPTH, MAX_DEPTH)  # fmt: skip
 
     def masks(self, device: torch.device) -> list[torch.Tensor]:
