@@ -37,6 +37,8 @@ SMOOTH_CODES = {
     "robust_diffusion": 4,
     "robust_gradient_diffusion": 5,
 }
+#: Channels of the frames (RGB; :func:`photometric` needs exactly this many).
+CHANNELS = 3
 #: As reprojection._RayProjection: the projected depth is clamped to this before dividing.
 _MIN_Z = 1e-6
 
@@ -64,7 +66,7 @@ def _photometric_one(depth, target, coef, rays, offsets, occluded, use_occ, grad
     derivative before its division by the number of kept pixels)."""
     refs = coef.shape[0]
     h, w = depth.shape
-    channels = target.shape[2]
+    channels = CHANNELS
     acc = np.zeros(refs)
     count = np.zeros(refs, dtype=np.int64)
     for i in range(h):
@@ -87,7 +89,7 @@ def _photometric_one(depth, target, coef, rays, offsets, occluded, use_occ, grad
                 err = 0.0
                 gx = 0.0
                 gy = 0.0
-                for c in range(channels):
+                for c in range(CHANNELS):  # a constant: the compiler unrolls the loop
                     a0 = coef[r, y0, x0, 0, c]
                     bx = coef[r, y0, x0, 1, c]
                     cy = coef[r, y0, x0, 2, c]
