@@ -148,9 +148,9 @@ def test_results_do_not_depend_on_the_number_of_threads(problem):
     runs = []
     try:
         for threads in (1, 2):
-            numba.set_num_threads(threads)
+            toy_kernels.set_threads(threads)
             runs.append(toy.optimise(problem, "robust_diffusion", 6, odm_every=3))
     finally:
-        numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)
+        toy_kernels.set_threads(numba.config.NUMBA_NUM_THREADS)
     assert torch.equal(runs[0].depth, runs[1].depth)
     assert np.array_equal(runs[0].le, runs[1].le)

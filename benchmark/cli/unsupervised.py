@@ -198,9 +198,10 @@ def toy_cmd(
     Horizon by reprojection from frames t-1 and t+1, with the photometric loss alone and with
     each smooth loss over a log grid of (λ, κ), ODM off and on; report LE, M and ΔM beside the
     thesis' Table 4.1."""
-    import numba
     import torch
     from tqdm import tqdm
+
+    from ..unsupervised import toy_kernels
 
     check_out_folder(out, error=UserError)
     _positive("--iterations", iterations)
@@ -223,7 +224,7 @@ def toy_cmd(
     except ValueError as e:
         raise user_error(e) from None
     torch.set_num_threads(threads)
-    numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+    toy_kernels.set_threads(threads)
     bar = tqdm(total=cfg.runs * cfg.iterations, unit="it", disable=quiet, dynamic_ncols=True)
     t0 = time.perf_counter()
     with bar:

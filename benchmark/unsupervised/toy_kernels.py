@@ -24,9 +24,24 @@ threads (``numba.set_num_threads``). No fastmath.
 from __future__ import annotations
 
 import math
+import os
 
+import numba
 import numpy as np
-from numba import njit, prange
+from numba import config, njit, prange
+
+#: numba's own thread pool, not OpenMP: with its "omp" layer next to torch's OpenMP runtime the
+#: study's command ran 3-4x slower (CPU time, torch and numba at 1 thread each). It must be set
+#: before numba's first parallel launch (or :func:`numba.set_num_threads`): use
+#: :func:`set_threads`. An explicit NUMBA_THREADING_LAYER still wins.
+if "NUMBA_THREADING_LAYER" not in os.environ:
+    config.THREADING_LAYER = "workqueue"
+
+
+def set_threads(threads: int) -> None:
+    """Threads of the kernels (at most numba's pool, NUMBA_NUM_THREADS: the number of cores)."""
+    numba.set_num_threads(max(1, min(threads, config.NUMBA_NUM_THREADS)))
+
 
 #: Codes of the smooth losses in :func:`smooth` (the names of reprojection.SMOOTH_LOSSES).
 SMOOTH_CODES = {
