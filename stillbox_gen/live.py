@@ -20,8 +20,10 @@ from __future__ import annotations
 import contextlib
 import os
 import pickle
+import shutil
 import subprocess
 import sys
+import tempfile
 
 import numpy as np
 
@@ -52,15 +54,17 @@ class LiveRenderer:
         require_blender()
         self._scene: SceneSpec | None = None
         self._gone: Exception | None = None  # what calls raise from now on (closed, died)
+        self._folder = tempfile.mkdtemp(prefix="stillbox-live-")  # the worker's frame files
         answers, write_end = os.pipe()  # not stdout: Blender prints there
         try:
             self._proc = subprocess.Popen(
-                [sys.executable, "-m", "stillbox_gen.blender.live", str(write_end)],
+                [sys.executable, "-m", "stillbox_gen.blender.live", str(write_end), self._folder],
                 stdin=subprocess.PIPE,
                 pass_fds=(write_end,),
             )
         except BaseException:
             os.close(answers)
+            shutil.rmtree(self._folder, ignore_errors=True)
             raise
         finally:
             os.close(write_end)  # the worker's copy only: its death ends our reads (EOF)
@@ -115,6 +119,7 @@ class LiveRenderer:
         for pipe in (proc.stdin, self._answers):
             with contextlib.suppress(OSError):
                 pipe.close()
+        shutil.rmtree(self._folder, ignore_errors=True)
 
     def __enter__(self) -> LiveRenderer:
         return self

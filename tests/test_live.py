@@ -124,6 +124,7 @@ def test_a_dead_worker_is_an_error_not_a_hang():
         assert time.monotonic() - t0 < 10
         with pytest.raises(WorkerDied):  # and stays an error
             live.load(spec)
+        assert not os.path.exists(live._folder)  # its frame folder is gone too
     finally:
         live.close()
 

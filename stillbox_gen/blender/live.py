@@ -2,7 +2,7 @@
 
 ``python -m stillbox_gen.blender.live`` is started by :class:`stillbox_gen.live.LiveRenderer`;
 it reads pickled requests on stdin and answers each with one pickle on the file descriptor
-given as its argument (a pipe of the driver: Blender prints on stdout, which goes to /dev/null
+given as its first argument (a pipe of the driver: Blender prints on stdout, which goes to /dev/null
 once the worker is set up, as in every worker):
 
 - first ``(cfg, threads, device)``: a DatasetConfig, Cycles threads (0: all cores) and a
@@ -19,17 +19,15 @@ A request that fails answers ``("error", kind, message)``, kind "config" for a u
 A still render with persistent data re-syncs only the camera: the frame is the one of the
 generator's animation render at that pose and seed (bit-identical, tests/test_live.py). Blender
 in background mode keeps no pixels in its Render Result, so each frame goes through a multilayer
-EXR in a temporary folder of this process, read back and deleted at once; the folder is removed
-when the worker ends (not after a SIGKILL: then an empty folder stays behind in the temp dir).
+EXR in the temporary folder the driver gives as second argument (and removes), read back and
+deleted at once.
 """
 
 from __future__ import annotations
 
 import os
 import pickle
-import shutil
 import sys
-import tempfile
 from pathlib import Path
 
 import bpy
@@ -76,31 +74,28 @@ def _answer(out, message) -> None:
     out.flush()
 
 
-def serve(inp, out) -> None:
-    """Answer requests from ``inp`` on ``out`` (binary files) until ("close",) or end of input."""
+def serve(inp, out, folder: Path) -> None:
+    """Answer requests from ``inp`` on ``out`` (binary files) until ("close",) or end of input;
+    frames pass through ``folder``."""
     state: dict = {}
-    folder = Path(tempfile.mkdtemp(prefix="stillbox-live-"))
-    try:
-        while True:
-            try:
-                request = pickle.load(inp)
-            except EOFError:
-                return
-            if request[0] == "close":
-                return
-            try:
-                if request[0] == "load":
-                    result = _load(state, request[1])
-                else:
-                    result = _render(state, folder, *request[1:])
-            except ConfigError as e:
-                _answer(out, ("error", "config", str(e)))
-            except Exception as e:  # noqa: BLE001 - reported to the driver, which raises it
-                _answer(out, ("error", "runtime", f"{type(e).__name__}: {e}"))
+    while True:
+        try:
+            request = pickle.load(inp)
+        except EOFError:
+            return
+        if request[0] == "close":
+            return
+        try:
+            if request[0] == "load":
+                result = _load(state, request[1])
             else:
-                _answer(out, ("ok", result))
-    finally:
-        shutil.rmtree(folder, ignore_errors=True)
+                result = _render(state, folder, *request[1:])
+        except ConfigError as e:
+            _answer(out, ("error", "config", str(e)))
+        except Exception as e:  # noqa: BLE001 - reported to the driver, which raises it
+            _answer(out, ("error", "runtime", f"{type(e).__name__}: {e}"))
+        else:
+            _answer(out, ("ok", result))
 
 
 def main() -> None:
@@ -116,7 +111,7 @@ def main() -> None:
         _answer(out, ("error", "runtime", f"{type(e).__name__}: {e}"))
         return
     _answer(out, ("ok", report))
-    serve(inp, out)
+    serve(inp, out, Path(sys.argv[2]))
 
 
 if __name__ == "__main__":
