@@ -142,6 +142,11 @@ class LiveRenderer:
             answer = pickle.load(self._answers)
         except (OSError, EOFError, pickle.UnpicklingError):
             raise self._died() from None
+        except BaseException:  # Ctrl-C, SIGTERM: the answer would come to the next request
+            self._gone = RuntimeError("LiveRenderer: a request was interrupted (worker stopped)")
+            self._proc.kill()
+            self.close()
+            raise
         if answer[0] == "ok":
             return answer[1]
         _, kind, message = answer

@@ -11,7 +11,7 @@ import time
 import numpy as np
 import pytest
 
-from stillbox_gen import camera, config
+from stillbox_gen import camera, config, formats, layout
 from stillbox_gen.config import DatasetConfig
 from stillbox_gen.dataset import Dataset
 from stillbox_gen.errors import ConfigError
@@ -48,6 +48,29 @@ def test_live_frames_are_the_dataset_files_bit_for_bit(name, request):
         _check_scene_frames(live, ds, first, [0, 9, 4])
         _check_scene_frames(live, ds, second, [3])
         _check_scene_frames(live, ds, first, [7])
+
+
+@pytest.mark.render
+def test_frame_selects_the_path_shading_seed_of_that_frame(tmp_path):
+    """Under "path" shading each frame has its own Cycles seed: frame f rendered live (in any
+    order) is the generator's frame f bit for bit, and the same pose with another frame's seed
+    is not."""
+    from test_render import render_spec
+
+    cfg = config.replace(
+        DatasetConfig(seed=4),
+        camera={"width": 24, "height": 24, "frames": 3},
+        render={"shading": "path", "samples": 2},
+    )
+    spec = sample_scene(cfg, 0)
+    render_spec(spec, cfg, tmp_path)
+    files = [formats.read_rgb(tmp_path / layout.rgb_name(0, f)) for f in range(3)]
+    poses = spec.camera.cam2world
+    with LiveRenderer(cfg, threads=1) as live:
+        live.load(spec)
+        for f in (2, 0, 1):
+            assert _same_bits(live.render(poses[f], frame=f)[0], files[f]), f
+        assert not np.array_equal(live.render(poses[1], frame=0)[0], files[1])
 
 
 # An empty box (no primitives), walls at these distances from the origin (m): the planar depth

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import os
 import pickle
+import signal
 import sys
 from pathlib import Path
 
@@ -100,6 +101,7 @@ def serve(inp, out, folder: Path) -> None:
 
 def main() -> None:
     exit_with_parent(os.getppid())
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the driver, which ends us
     out = os.fdopen(int(sys.argv[1]), "wb")
     inp = sys.stdin.buffer
     try:
