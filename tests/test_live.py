@@ -153,6 +153,40 @@ def test_a_dead_worker_is_an_error_not_a_hang():
 
 
 @pytest.mark.render
+def test_the_worker_dies_with_a_killed_driver(tmp_path):
+    """kill -9 of the process holding a LiveRenderer ends its Blender worker too (its frame
+    folder stays in the temp dir, empty, as does Blender's own session folder)."""
+    import subprocess
+    import sys
+
+    from conftest import alive_of, descendants
+
+    code = (
+        "from stillbox_gen.config import DatasetConfig\n"
+        "from stillbox_gen.live import LiveRenderer\n"
+        "live = LiveRenderer(DatasetConfig(), threads=1)\n"
+        "print(live.pid, flush=True)\n"
+        "import time; time.sleep(600)\n"
+    )
+    env = {**os.environ, "TMPDIR": str(tmp_path)}
+    cmd = [sys.executable, "-c", code]
+    driver = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True, env=env)
+    try:
+        worker = int(driver.stdout.readline())
+        procs = {p: t for p, t in descendants(driver.pid).items() if p == worker}
+        assert procs, "the worker is not a child of the driver"
+    finally:
+        driver.kill()
+        driver.wait()
+    deadline = time.monotonic() + 10
+    while alive_of(procs) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert alive_of(procs) == []
+    folders = list(tmp_path.glob("stillbox-live-*"))
+    assert len(folders) == 1 and not any(folders[0].iterdir())
+
+
+@pytest.mark.render
 def test_requests_the_driver_refuses():
     with LiveRenderer(DatasetConfig(), threads=1) as live:
         with pytest.raises(RuntimeError, match="no scene loaded"):
