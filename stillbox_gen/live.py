@@ -54,13 +54,16 @@ class LiveRenderer:
         require_blender()
         self._scene: SceneSpec | None = None
         self._gone: Exception | None = None  # what calls raise from now on (closed, died)
-        self._folder = tempfile.mkdtemp(prefix="stillbox-live-")  # the worker's frame files
+        # the worker's frame files, and its TMPDIR: Blender's own session folder goes there too,
+        # so that close() removes everything even after the worker was killed
+        self._folder = tempfile.mkdtemp(prefix="stillbox-live-")
         answers, write_end = os.pipe()  # not stdout: Blender prints there
         try:
             self._proc = subprocess.Popen(
                 [sys.executable, "-m", "stillbox_gen.blender.live", str(write_end), self._folder],
                 stdin=subprocess.PIPE,
                 pass_fds=(write_end,),
+                env={**os.environ, "TMPDIR": self._folder},
             )
         except BaseException:
             os.close(answers)

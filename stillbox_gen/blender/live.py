@@ -19,8 +19,8 @@ A request that fails answers ``("error", kind, message)``, kind "config" for a u
 A still render with persistent data re-syncs only the camera: the frame is the one of the
 generator's animation render at that pose and seed (bit-identical, tests/test_live.py). Blender
 in background mode keeps no pixels in its Render Result, so each frame goes through a multilayer
-EXR in the temporary folder the driver gives as second argument (and removes), read back and
-deleted at once.
+EXR in the temporary folder the driver gives as second argument (also this process's TMPDIR,
+so Blender's session folder; the driver removes it), read back and deleted at once.
 """
 
 from __future__ import annotations
