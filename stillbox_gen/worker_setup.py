@@ -10,9 +10,25 @@ one its intrinsics were drawn for.
 
 from __future__ import annotations
 
+import importlib.util
 from dataclasses import dataclass
 
 from .config import CPU_DEVICE, DatasetConfig, RenderConfig
+from .errors import ConfigError
+
+NO_BLENDER = (
+    "rendering needs Blender as a Python module (bpy 5.0.1, Python 3.11): "
+    "pip install 'stillbox-gen[gen]'"
+)
+
+
+def require_blender() -> None:
+    """A ConfigError (one line) when bpy is not installed, before anything is written: the
+    reader and the benchmark install without it (the `bench` extra), the renderer does not.
+    Here rather than in stillbox_gen.workers so that a driver needing no pool (stillbox_gen.live)
+    can check without importing the pool's module."""
+    if importlib.util.find_spec("bpy") is None:
+        raise ConfigError(NO_BLENDER)
 
 
 @dataclass(frozen=True)

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import contextlib
 import functools
-import importlib.util
 import json
 import multiprocessing
 import os
@@ -36,7 +35,7 @@ from pathlib import Path
 
 from .config import CPU_DEVICE, GPU_BACKENDS, DatasetConfig
 from .errors import ConfigError
-from .worker_setup import WorkerSetup, worker_setup
+from .worker_setup import WorkerSetup, require_blender, worker_setup
 
 
 class Terminated(KeyboardInterrupt):
@@ -115,19 +114,6 @@ def find_gpus() -> dict[str, list[str]]:
         return json.loads(lines[-1])
     except (OSError, subprocess.TimeoutExpired, ValueError) as e:
         raise RuntimeError(str(e)) from None
-
-
-NO_BLENDER = (
-    "rendering needs Blender as a Python module (bpy 5.0.1, Python 3.11): "
-    "pip install 'stillbox-gen[gen]'"
-)
-
-
-def require_blender() -> None:
-    """A ConfigError (one line) when bpy is not installed, before anything is written: the
-    reader and the benchmark install without it (the `bench` extra), the renderer does not."""
-    if importlib.util.find_spec("bpy") is None:
-        raise ConfigError(NO_BLENDER)
 
 
 def choose_device(choice: str, backend: str = "local") -> tuple[str, str]:

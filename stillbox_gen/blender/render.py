@@ -91,7 +91,12 @@ def _pose_frame(scene, depsgraph=None) -> None:
     if job is None or not 0 <= f < len(job["poses"]):
         return
     build.set_camera_pose(job["camera"], job["poses"][f])
-    seed = render_seed(job["seed"], f, _STATE["setup"].render.shading)
+    set_seed(scene, job["seed"], f)
+
+
+def set_seed(scene, scene_seed: int, frame: int) -> None:
+    """The Cycles seed of frame ``frame`` of the scene of seed ``scene_seed`` (render_seed)."""
+    seed = render_seed(scene_seed, frame, _STATE["setup"].render.shading)
     if scene.cycles.seed != seed:
         scene.cycles.seed = seed
         scene.update_tag()  # an animation render re-reads the seed only from a tagged scene
@@ -121,6 +126,26 @@ def render_seed(scene_seed: int, frame: int, shading: str) -> int:
     if shading == "path":
         return int((scene_seed * 1_000_003 + frame * 7_919) % (2**31 - 1))
     return int(scene_seed % (2**31 - 1))
+
+
+def load_scene(spec: dict):
+    """Replace the worker's scene by the one of a SceneSpec dict, at the frame size of its
+    CameraSpec; returns its camera object (posed per frame by build.set_camera_pose)."""
+    scene = bpy.context.scene
+    if scene.render.use_persistent_data:  # free the previous scene's cached render data, which
+        scene.render.use_persistent_data = False  # otherwise grows RSS ~0.27 MB per scene
+        scene.render.use_persistent_data = True
+    _set_frame_size(scene, spec["camera"]["width"], spec["camera"]["height"])
+    build.clear_scene()
+    setup = _STATE["setup"]
+    return build.build_scene(spec, setup.textures_dir, setup.render.shading)
+
+
+def frame_arrays(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """The RGB (H, W, 3) uint8 sRGB and planar depth (H, W) float32 m of a rendered multilayer
+    EXR, exactly as the dataset's frame and depth files hold them."""
+    rgb, depth = _channels(path)
+    return formats.linear_to_srgb8(rgb), depth
 
 
 def _channels(path: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -153,13 +178,7 @@ def render_scene(spec: dict, out_dir: str, image_format: str, legacy: bool) -> d
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     scene = bpy.context.scene
-    if scene.render.use_persistent_data:  # free the previous scene's cached render data, which
-        scene.render.use_persistent_data = False  # otherwise grows RSS ~0.27 MB per scene
-        scene.render.use_persistent_data = True
-    _set_frame_size(scene, spec["camera"]["width"], spec["camera"]["height"])
-    build.clear_scene()
-    setup = _STATE["setup"]
-    cam = build.build_scene(spec, setup.textures_dir, setup.render.shading)
+    cam = load_scene(spec)
     t_build = time.perf_counter() - t0
     local = layout.local_index(spec["index"])
     # full-resolution chroma (4:4:4): 4:2:0 JPEGs differ from the PNGs by about 6/255 on average
@@ -180,9 +199,9 @@ def render_scene(spec: dict, out_dir: str, image_format: str, legacy: bool) -> d
             _STATE["job"] = None
         for f in range(len(poses)):
             tmp = Path(scene.render.frame_path(frame=f))
-            rgb, depth = _channels(tmp)
+            rgb, depth = frame_arrays(tmp)
             tmp.unlink()
-            bgr = formats.linear_to_srgb8(rgb)[..., ::-1]
+            bgr = rgb[..., ::-1]
             _imwrite(out / layout.rgb_name(local, f, image_format), bgr, params)
             formats.write_depth_exr(out / layout.depth_name(local, f), depth)
             if legacy:
