@@ -203,13 +203,12 @@ def fly_cmd(**o) -> None:
     if o["constant_depth"] is not None and o["depth"] != "constant":
         raise UserError("--constant-depth: only with --depth constant")
     settings = training_settings({"device": o["device"], "threads": o["threads"]})
-    if o["renderer"] == "blender":
-        from stillbox_gen import workers
+    from ..flight.render import check_renderer
 
-        try:
-            workers.require_blender()
-        except ConfigError as e:
-            raise UserError(f"--renderer blender: {e}") from None
+    try:
+        check_renderer(o["renderer"])
+    except ConfigError as e:
+        raise UserError(f"--renderer {o['renderer']}: {e}") from None
     if settings["threads"] > 0:
         torch.set_num_threads(settings["threads"])
     device = torch.device("cpu") if not learned else torch_device(settings["device"])

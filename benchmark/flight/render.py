@@ -36,6 +36,18 @@ def analytic_render(episode: Episode, width: int, height: int) -> Render:
     return render
 
 
+def check_renderer(kind: str) -> None:
+    """Before anything starts: ValueError for an unknown ``kind``; for "blender", a one-line
+    ConfigError when bpy is not installed (stillbox_gen.workers.require_blender: it names the
+    ``gen`` extra)."""
+    if kind not in RENDERERS:
+        raise ValueError(f"renderer must be one of {RENDERERS}, got {kind!r}")
+    if kind == "blender":
+        from stillbox_gen import workers
+
+        workers.require_blender()
+
+
 @contextlib.contextmanager
 def open_renderer(
     kind: str, scene_cfg: DatasetConfig, device: str = "cpu"
@@ -48,11 +60,7 @@ def open_renderer(
     if kind == "analytic":
         yield lambda episode: analytic_render(episode, width, height)
         return
-    if kind != "blender":
-        raise ValueError(f"renderer must be one of {RENDERERS}, got {kind!r}")
-    from stillbox_gen import workers
-
-    workers.require_blender()
+    check_renderer(kind)
     from stillbox_gen.live import LiveRenderer
 
     with LiveRenderer(scene_cfg, device) as live:
