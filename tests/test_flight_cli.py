@@ -206,3 +206,14 @@ def test_record_round_trip():
     back = flight_run.result_of(json.loads(json.dumps(flight_run.record_of(0, e, r, errors))))
     assert back.outcome == r.outcome and back.path_ratio == r.path_ratio
     assert np.array_equal(back.positions, r.positions)
+
+
+def test_a_failure_before_the_first_episode_leaves_nothing(tmp_path, monkeypatch):
+    def broken(*args, **kwargs):
+        raise RuntimeError("no scene")
+
+    monkeypatch.setattr(flight_run, "make_episode", broken)
+    out = tmp_path / "run"
+    with pytest.raises(RuntimeError, match="no scene"):
+        fly("--depth", "oracle", "--out", out, *FAST)
+    assert not out.exists()

@@ -136,7 +136,7 @@ def test_no_import_cycles():
 
 #: benchmark's groups of modules (README code map): each may import benchmark.core, never the
 #: other way round
-BENCHMARK_GROUPS = ("supervised", "unsupervised", "video", "cli")
+BENCHMARK_GROUPS = ("supervised", "unsupervised", "video", "flight", "cli")
 
 
 def test_benchmark_core_imports_none_of_the_other_groups():

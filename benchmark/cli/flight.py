@@ -35,7 +35,7 @@ from .options import (
 BUILT_IN = ("oracle", "constant")
 THREADS_OPTION = setting_option("threads", "run")
 #: config.json entries a resumed run may change
-RESUMABLE = ("episodes",)
+RESUMABLE = ("episodes", "device")
 
 
 def _check_out(out: Path, resume: bool) -> dict | None:
@@ -230,7 +230,12 @@ def fly_cmd(**o) -> None:
     try:
         with folder_lock(out, "--out"):
             runfolder.write_config(out, config)
-            summary = fly_run(out, config, Scored(source), flight, progress=not o["quiet"])
+            try:
+                summary = fly_run(out, config, Scored(source), flight, progress=not o["quiet"])
+            except BaseException:
+                if earlier is None and not runfolder.read_episodes(out):
+                    (out / runfolder.CONFIG_JSON).unlink()  # nothing flown: no run to resume
+                raise
     except ConfigError as e:
         raise UserError(str(e)) from None
     except FieldError as e:

@@ -20,6 +20,10 @@ A comparison (``compare --out DIR``, ``report --out OUT``) writes ``OUT.md``, ``
 ``OUT-error_vs_foe_distance.png`` (``compare``: OUT = DIR/comparison, beside one run folder per
 method).
 
+A fly run (``stillbox-bench fly``) writes ``config.json``, ``episodes/NNNNNN.json`` (one per
+finished episode, as it ends), ``plots/episode_NNNNNN.png``, ``episodes.csv`` and, last,
+``summary.json`` (README, "Closed-loop flight").
+
 Writes: JSON, Markdown and CSV reports by :func:`stillbox_gen.formats.atomic_write_text` (a
 temporary name, fsynced, renamed); checkpoints, figures and ``pixels.npz`` by
 :func:`atomic_write_binary`; ``steps.csv`` and ``metrics.csv`` grow a row at a time and are cut
