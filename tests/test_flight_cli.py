@@ -217,3 +217,33 @@ def test_a_failure_before_the_first_episode_leaves_nothing(tmp_path, monkeypatch
     with pytest.raises(RuntimeError, match="no scene"):
         fly("--depth", "oracle", "--out", out, *FAST)
     assert not out.exists()
+
+
+def test_checkpoint_sources_for_the_blender_renderer(tmp_path, depth_ckpt):
+    """What --depth PATH becomes (the Blender renderer's end-to-end test comes with it): a depth
+    network (infer's pipeline) or a flow network, its camera and frame size checked."""
+    from benchmark.cli.flight import _source
+    from benchmark.cli.options import UserError
+    from benchmark.flight.sources import FlowDepth, NetworkDepth
+
+    flow = tmp_path / "flow.pt"
+    ck = {
+        "model": registry.build_model("flownets-flow-tiny").state_dict(),
+        "model_name": "flownets-flow-tiny",
+        "nominal_displacement": 0.3,
+    }
+    torch.save(ck, flow)
+    o = {"renderer": "blender", "shifts": 2, "constant_depth": None, "data": tmp_path}
+    cpu = torch.device("cpu")
+    src, info = _source({**o, "depth": str(depth_ckpt)}, (64, 64), cpu)
+    assert isinstance(src, NetworkDepth) and src.shifts == 2
+    assert info["depth_kind"] == "depth network" and info["nominal_displacement_m"] == 0.3
+    src, info = _source({**o, "depth": str(flow)}, (48, 48), cpu)
+    assert isinstance(src, FlowDepth) and info["model_name"] == "flownets-flow-tiny"
+    with pytest.raises(UserError, match="--res"):
+        _source({**o, "depth": str(depth_ckpt)}, (48, 48), cpu)
+    ck = torch.load(depth_ckpt, weights_only=True)
+    ck["camera"]["fov_deg"] = 60.0
+    torch.save(ck, tmp_path / "narrow.pt")
+    with pytest.raises(UserError, match="60 deg"):
+        _source({**o, "depth": str(tmp_path / "narrow.pt")}, (64, 64), cpu)

@@ -116,7 +116,7 @@ def _source(o: dict, res: tuple[int, int], device) -> tuple[object, dict]:
     camera = flight_scene_config(width=res[0], height=res[1]).camera
     try:
         if kind.scored_as is registry.Scoring.FLOW:
-            src = sources.FlowDepth(path, device, camera.K)
+            src = sources.FlowDepth(path, device, camera.K())
             return src, {"depth_kind": "flow network", **src.info}
         if res[0] % 64 or res[1] % 64:
             w, h = res
