@@ -17,7 +17,7 @@ from stillbox_gen.errors import ConfigError
 
 from ..core import registry, runfolder
 from ..core.errors import FieldError
-from ..flight.choices import RENDERERS, YAW_MODES
+from ..flight.choices import MAX_STEPS, RENDERERS, YAW_MODES
 from ..video.multishift import MAX_SHIFTS
 from .options import (
     DATA_OPTION,
@@ -173,7 +173,7 @@ def _source(o: dict, res: tuple[int, int], device) -> tuple[object, dict]:
     help="line: the camera keeps the heading of the straight line (frames differ by a "
     "translation, as the networks were trained); goal: it turns towards the goal.",
 )
-@int_option("--max-steps", 300, "Control steps (0.1 s each) before an episode times out.")
+@int_option("--max-steps", MAX_STEPS, "Control steps before an episode times out.")
 @click.option("--resume", is_flag=True, help="Continue the unfinished run in --out.")
 @DEVICE_OPTION
 @THREADS_OPTION

@@ -5,3 +5,5 @@ nothing, so ``stillbox-bench`` builds its options without the scene sampling).""
 RENDERERS = ("blender", "analytic")
 #: simulate.FlightConfig.yaw: the camera keeps the straight line's heading, or faces the goal
 YAW_MODES = ("goal", "line")
+#: simulate.FlightConfig.max_steps: control steps before an episode ends as "timeout"
+MAX_STEPS = 300

@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .choices import YAW_MODES
+from .choices import MAX_STEPS, YAW_MODES
 from .controller import ControllerConfig, plan
 from .dynamics import DroneState, DynamicsConfig, camera_pose, heading, step
 from .obstacles import PointMemory, SensingConfig
@@ -55,7 +55,7 @@ class FlightConfig:
     sensing: SensingConfig = field(default_factory=SensingConfig)
     drone_radius: float = 0.25
     reach_radius: float = 1.0
-    max_steps: int = 300
+    max_steps: int = MAX_STEPS
     yaw: str = "goal"
 
 
