@@ -69,6 +69,7 @@ def test_fly_writes_the_run_folder(runs):
     assert [int(r["episode"]) for r in rows] == [0, 1]
     assert {"outcome", "min_clearance_m", "path_ratio", "depth_mae_m", "start_x_m"} <= set(rows[0])
     assert float(rows[0]["min_clearance_m"]) >= s["min_min_clearance_m"]
+    assert float(rows[0]["flight_time_s"]) == pytest.approx(0.1 * int(rows[0]["steps"]))
     for k in range(2):
         assert runfolder.episode_plot_path(out, k).stat().st_size > 1000
     config = json.loads((out / "config.json").read_text())

@@ -43,9 +43,11 @@ def result_of(record: dict) -> EpisodeResult:
     return EpisodeResult(**values)
 
 
-def row_of(record: dict) -> dict:
-    """episodes.csv's row of a record: summary.episode_row, start, goal and the depth errors."""
+def row_of(record: dict, dt: float) -> dict:
+    """episodes.csv's row of a record: summary.episode_row, the flight time (s; ``dt`` seconds
+    per control step), start, goal and the depth errors."""
     row = episode_row(record["episode"], result_of(record))
+    row["flight_time_s"] = record["steps"] * dt
     xyz = ("x", "y", "z")
     row |= {f"start_{a}_m": v for a, v in zip(xyz, record["start"], strict=True)}
     row |= {f"goal_{a}_m": v for a, v in zip(xyz, record["goal"], strict=True)}
@@ -103,7 +105,7 @@ def fly_run(
         "episodes_flown_this_session": len(todo),
         "config": config,
     }
-    runfolder.write_flight_report(out, summary, [row_of(r) for r in ordered])
+    runfolder.write_flight_report(out, summary, [row_of(r, flight.dynamics.dt) for r in ordered])
     return summary
 
 
