@@ -183,64 +183,86 @@ def fly_cmd(**o) -> None:
     6.5); collisions are checked against the scene's true geometry."""
     import torch
 
-    from stillbox_gen.lock import folder_lock
-
-    from ..flight.run import describe, fly_run
+    from ..flight.run import describe
     from ..flight.simulate import FlightConfig
-    from ..flight.sources import Scored
 
     out: Path = o["out"]
     earlier = _check_out(out, o["resume"])
     res = _resolution(o["res"])
+    _check_numbers(o)
+    settings = training_settings({"device": o["device"], "threads": o["threads"]})
+    _check_renderer(o["renderer"])
+    if settings["threads"] > 0:
+        torch.set_num_threads(settings["threads"])
+    learned = o["depth"] not in BUILT_IN
+    device = torch_device(settings["device"]) if learned else torch.device("cpu")
+    source, described = _source(o, res, device)
+    flight = FlightConfig(yaw=o["yaw"], max_steps=o["max_steps"])
+    config = _jsonable({
+        "depth": o["depth"], **described, "episodes": o["episodes"], "seed": o["seed"],
+        "res": list(res), "renderer": o["renderer"], "shifts": o["shifts"],
+        "device": o["device"], "flight": dataclasses.asdict(flight),
+    })  # fmt: skip
+    if earlier is not None:
+        _check_resumed(out, earlier, config)
+    summary = _fly(out, config, source, flight, earlier is None, not o["quiet"])
+    click.echo(describe(summary, out))
+
+
+def _check_numbers(o: dict) -> None:
+    """--episodes, --max-steps, --shifts and --constant-depth against --depth."""
     for flag in ("episodes", "max_steps"):
         if o[flag] < 1:
             raise UserError(f"--{flag.replace('_', '-')}: must be at least 1, got {o[flag]}")
     if not 1 <= o["shifts"] <= MAX_SHIFTS:
         raise UserError(f"--shifts: must be in 1..{MAX_SHIFTS}, got {o['shifts']}")
-    learned = o["depth"] not in BUILT_IN
-    if not learned and not is_default("shifts"):
+    if o["depth"] in BUILT_IN and not is_default("shifts"):
         raise UserError("--shifts: only for a depth network's checkpoint (--depth PATH)")
     if o["constant_depth"] is not None and o["depth"] != "constant":
         raise UserError("--constant-depth: only with --depth constant")
-    settings = training_settings({"device": o["device"], "threads": o["threads"]})
+
+
+def _check_renderer(kind: str) -> None:
+    """--renderer blender needs bpy: one line naming the gen extra otherwise."""
     from ..flight.render import check_renderer
 
     try:
-        check_renderer(o["renderer"])
+        check_renderer(kind)
     except ConfigError as e:
-        raise UserError(f"--renderer {o['renderer']}: {e}") from None
-    if settings["threads"] > 0:
-        torch.set_num_threads(settings["threads"])
-    device = torch.device("cpu") if not learned else torch_device(settings["device"])
-    source, described = _source(o, res, device)
-    flight = FlightConfig(yaw=o["yaw"], max_steps=o["max_steps"])
-    config = {
-        "depth": o["depth"], **described, "episodes": o["episodes"], "seed": o["seed"],
-        "res": list(res), "renderer": o["renderer"], "shifts": o["shifts"],
-        "device": o["device"], "flight": dataclasses.asdict(flight),
-    }  # fmt: skip
-    config = _jsonable(config)
-    if earlier is not None:
-        changed = [k for k in config if k not in RESUMABLE and earlier.get(k) != config[k]]
-        if changed:
-            raise UserError(
-                f"--resume: '{out}' was started with other settings ({', '.join(changed)}: "
-                f"{earlier.get(changed[0])!r}, now {config[changed[0]]!r})"
-            )
+        raise UserError(f"--renderer {kind}: {e}") from None
+
+
+def _check_resumed(out: Path, earlier: dict, config: dict) -> None:
+    """--resume continues a run of the same settings (but RESUMABLE's)."""
+    changed = [k for k in config if k not in RESUMABLE and earlier.get(k) != config[k]]
+    if changed:
+        raise UserError(
+            f"--resume: '{out}' was started with other settings ({', '.join(changed)}: "
+            f"{earlier.get(changed[0])!r}, now {config[changed[0]]!r})"
+        )
+
+
+def _fly(out: Path, config: dict, source, flight, new: bool, progress: bool) -> dict:
+    """flight.run.fly_run holding --out's lock; a new run stopped before its first episode
+    leaves nothing behind (no run to resume)."""
+    from stillbox_gen.lock import folder_lock
+
+    from ..flight.run import fly_run
+    from ..flight.sources import Scored
+
     try:
         with folder_lock(out, "--out"):
             runfolder.write_config(out, config)
             try:
-                summary = fly_run(out, config, Scored(source), flight, progress=not o["quiet"])
+                return fly_run(out, config, Scored(source), flight, progress=progress)
             except BaseException:
-                if earlier is None and not runfolder.read_episodes(out):
-                    (out / runfolder.CONFIG_JSON).unlink()  # nothing flown: no run to resume
+                if new and not runfolder.read_episodes(out):
+                    (out / runfolder.CONFIG_JSON).unlink()
                 raise
     except ConfigError as e:
         raise UserError(str(e)) from None
     except FieldError as e:
         raise user_error(e) from None
-    click.echo(describe(summary, out))
 
 
 def _jsonable(value):
