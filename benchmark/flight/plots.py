@@ -24,17 +24,16 @@ def footprints(world: World, z: float, extent: tuple, band: float = BAND, grid: 
     xs = np.linspace(extent[0], extent[1], grid)
     ys = np.linspace(extent[2], extent[3], grid)
     gx, gy = np.meshgrid(xs, ys)
-    plane = np.full(gx.shape, np.inf)
-    column = np.full(gx.shape, np.inf)
-    for dz in np.linspace(-band, band, 9):
-        pts = np.stack([gx.ravel(), gy.ravel(), np.full(gx.size, z + dz)], axis=1)
+
+    def at(height: float) -> np.ndarray:
+        pts = np.stack([gx.ravel(), gy.ravel(), np.full(gx.size, height)], axis=1)
         d = np.full(len(pts), np.inf)
         for obstacle in world.obstacles:
             d = np.minimum(d, obstacle.signed_distance(pts))
-        d = d.reshape(gx.shape)
-        column = np.minimum(column, d)
-        if dz == 0:
-            plane = d
+        return d.reshape(gx.shape)
+
+    plane = at(z)
+    column = np.min([plane, *(at(z + dz) for dz in np.linspace(-band, band, 9))], axis=0)
     return xs, ys, plane, column
 
 
