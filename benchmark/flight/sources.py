@@ -16,6 +16,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -51,7 +52,12 @@ class NetworkDepth:
     back at most as far as the frames the loop keeps (simulate.HISTORY - 1)."""
 
     def __init__(
-        self, ckpt, device: torch.device, shifts: int = 1, ema: float = EMA_LAMBDA, **planner
+        self,
+        ckpt: str | Path,
+        device: torch.device,
+        shifts: int = 1,
+        ema: float = EMA_LAMBDA,
+        **planner,
     ) -> None:
         self.model, self.scale, self.info = depth_network(ckpt, "depth")
         self.model.to(device)
@@ -79,7 +85,7 @@ class FlowDepth:
     is closest to the checkpoint's nominal displacement; the translation is measured from the
     poses, in frame t's camera axes (the camera is stabilised: same orientation)."""
 
-    def __init__(self, ckpt, device: torch.device, K: np.ndarray) -> None:
+    def __init__(self, ckpt: str | Path, device: torch.device, K: np.ndarray) -> None:
         ck = load_checkpoint(ckpt, "depth")
         name = ck["model_name"]
         kind = registry.MODELS[name].kind
