@@ -136,7 +136,7 @@ def test_no_import_cycles():
 
 #: benchmark's groups of modules (README code map): each may import benchmark.core, never the
 #: other way round
-BENCHMARK_GROUPS = ("supervised", "unsupervised", "video", "cli")
+BENCHMARK_GROUPS = ("supervised", "unsupervised", "video", "flight", "cli")
 
 
 def test_benchmark_core_imports_none_of_the_other_groups():
@@ -227,17 +227,25 @@ FLIGHT = "benchmark.flight"
 FLIGHT_MAY_ALSO_LOAD = frozenset(
     {"stillbox_gen.config", "stillbox_gen.scene", "stillbox_gen.shapes", "stillbox_gen.photos"}
 )
+# The one place that starts Blender for `fly --renderer blender`: inside a function (never at
+# import), it checks for bpy (stillbox_gen.workers.require_blender) and starts the persistent
+# worker (stillbox_gen.live). The walks below do not follow these edges; the test of that module
+# checks they stay inside functions.
+FLIGHT_RENDERER = "benchmark.flight.render"
+FLIGHT_RENDERER_STARTS = ("stillbox_gen.workers", "stillbox_gen.live")
 
 
-def reachable(graph: dict[str, set[str]], starts: set[str]) -> set[str]:
-    """Every module of ``graph`` reached from ``starts`` (themselves included)."""
+def reachable(graph: dict[str, set[str]], starts: set[str], stop=lambda m: False) -> set[str]:
+    """Every module of ``graph`` reached from ``starts`` (themselves included), not going on
+    from the modules where ``stop(module)`` is true."""
     seen: set[str] = set()
     stack = list(starts)
     while stack:
         node = stack.pop()
         if node not in seen:
             seen.add(node)
-            stack.extend(graph.get(node, ()))
+            if node in starts or not stop(node):
+                stack.extend(graph.get(node, ()))
     return seen
 
 
@@ -248,9 +256,16 @@ def _benchmark_modules(names, flight: bool = False) -> set[str]:
 
 def _generator_modules_of_benchmark(graph: dict[str, set[str]], flight: bool = False) -> set[str]:
     """The stillbox_gen modules that benchmark modules (of flight, or all others) import,
-    directly or not."""
+    directly or not. The others' walk stops at the flight package (the `fly` command imports it
+    inside its functions: what flight loads is the flight test's); the flight walk leaves out
+    the renderer's start of Blender (FLIGHT_RENDERER_STARTS)."""
     starts = _benchmark_modules(graph, flight)
-    return {n for n in reachable(graph, starts) if n.split(".")[0] == "stillbox_gen"}
+    graph = {
+        m: {i for i in imports if not (m == FLIGHT_RENDERER and i in FLIGHT_RENDERER_STARTS)}
+        for m, imports in graph.items()
+    }
+    found = reachable(graph, starts, stop=lambda m: not flight and m.startswith(FLIGHT))
+    return {n for n in found if n.split(".")[0] == "stillbox_gen"}
 
 
 def test_reachable_follows_chains():
@@ -277,6 +292,28 @@ def test_flight_loads_the_scene_sampling_but_never_the_writer_or_blender():
     assert loaded <= BENCHMARK_MAY_LOAD | FLIGHT_MAY_ALSO_LOAD, sorted(loaded)
     for forbidden in ("stillbox_gen.writer", "stillbox_gen.generate", "stillbox_gen.blender"):
         assert not any(m.startswith(forbidden) for m in loaded)
+
+
+def test_the_flight_renderer_starts_blender_inside_a_function_only():
+    """benchmark.flight.render imports workers and live lazily: importing the flight package
+    (and the command line) loads neither, nor bpy."""
+    tree = ast.parse(_modules()[FLIGHT_RENDERER].read_text())
+    top = {a.name for n in tree.body if isinstance(n, ast.Import) for a in n.names}
+    top |= {
+        f"{n.module}.{a.name}" for n in tree.body if isinstance(n, ast.ImportFrom) for a in n.names
+    }
+    top |= {n.module for n in tree.body if isinstance(n, ast.ImportFrom) and n.module}
+    assert not top & set(FLIGHT_RENDERER_STARTS), top
+    names = sorted(n for n in _modules() if n.startswith((FLIGHT, "benchmark.cli")))
+    code = (
+        f"import importlib, sys\nfor n in {names!r}:\n    importlib.import_module(n)\n"
+        f"print(sorted(m for m in sys.modules if m in {FLIGHT_RENDERER_STARTS!r} or m == 'bpy'))"
+    )
+    proc = subprocess.run(
+        [sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=300
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip() == "[]"
 
 
 def test_importing_the_benchmark_loads_only_the_data_contract():

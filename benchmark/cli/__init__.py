@@ -17,7 +17,7 @@ if importlib.util.find_spec("torch") is None:  # installed without the `bench` e
 
 import click  # noqa: E402 - after the check, which must run before torch is imported below
 
-from . import supervised, unsupervised, video  # noqa: E402
+from . import flight, supervised, unsupervised, video  # noqa: E402
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
@@ -34,6 +34,8 @@ def cli() -> None:
     stillbox-bench infer --ckpt C --input flight.mp4 --speed 9 --out out/  depth of a video
     stillbox-bench eval-multishift --ckpt C --data SEQ --out R  shift strategies on sequences
     stillbox-bench toy --out runs/toy                        thesis 4.6: losses without ground truth
+    stillbox-bench fly --depth oracle --out runs/fly-oracle  thesis 6.5: closed-loop flight
+    stillbox-bench fly-compare runs/fly-*                    one table of fly runs
     stillbox-bench list                                      registered models
     """
 
@@ -48,6 +50,8 @@ for command in (
     video.infer,
     video.eval_multishift,
     unsupervised.toy_cmd,
+    flight.fly_cmd,
+    flight.fly_compare,
 ):
     cli.add_command(command)
 

@@ -20,6 +20,10 @@ A comparison (``compare --out DIR``, ``report --out OUT``) writes ``OUT.md``, ``
 ``OUT-error_vs_foe_distance.png`` (``compare``: OUT = DIR/comparison, beside one run folder per
 method).
 
+A fly run (``stillbox-bench fly``) writes ``config.json``, ``episodes/NNNNNN.json`` (one per
+finished episode, as it ends), ``plots/episode_NNNNNN.png``, ``episodes.csv`` and, last,
+``summary.json`` (README, "Closed-loop flight").
+
 Writes: JSON, Markdown and CSV reports by :func:`stillbox_gen.formats.atomic_write_text` (a
 temporary name, fsynced, renamed); checkpoints, figures and ``pixels.npz`` by
 :func:`atomic_write_binary`; ``steps.csv`` and ``metrics.csv`` grow a row at a time and are cut
@@ -191,7 +195,7 @@ def _write_json(path: Path, obj) -> None:
     atomic_write_text(path, json.dumps(obj, indent=2) + "\n")
 
 
-def _csv_text(rows: list[dict]) -> str:
+def csv_text(rows: list[dict]) -> str:
     """CSV with a header from the first row's keys (excel dialect, CRLF line ends)."""
     buf = io.StringIO(newline="")
     if rows:
@@ -307,7 +311,7 @@ def write_report(
 ) -> None:
     """per_sample.csv, pixels.npz (when there are pixels), summary.json and summary.md."""
     run = make_folder(run)
-    atomic_write_text(run / PER_SAMPLE_CSV, _csv_text(per_sample))
+    atomic_write_text(run / PER_SAMPLE_CSV, csv_text(per_sample))
     if pixels:
         atomic_write_binary(run / PIXELS_NPZ, lambda f: np.savez_compressed(f, **pixels))
     _write_json(run / SUMMARY_JSON, summary)
@@ -320,3 +324,71 @@ def write_comparison(out: Path, markdown: str, csv_text: str) -> None:
     make_folder(paths["md"].parent)
     atomic_write_text(paths["md"], markdown)
     atomic_write_text(paths["csv"], csv_text)
+
+
+# ---------------------------------------------------------------- closed-loop flight (fly)
+
+FLIGHT_KIND = "fly"  # summary.json's "kind" of a fly run
+EPISODES_CSV = "episodes.csv"
+EPISODES_DIR = "episodes"  # one NNNNNN.json per finished episode: what a resumed run skips
+
+
+def episode_path(run: Path, index: int) -> Path:
+    """``episodes/<index:06d>.json``: one finished episode of a fly run."""
+    return Path(run) / EPISODES_DIR / f"{index:06d}.json"
+
+
+def episode_plot_path(run: Path, index: int) -> Path:
+    """``plots/episode_<index:06d>.png``: the top-down figure of one episode."""
+    return Path(run) / PLOTS_DIR / f"episode_{index:06d}.png"
+
+
+def read_config(run: Path) -> dict | None:
+    """config.json, or None when the folder has none (a one-line ValueError when unreadable)."""
+    path = Path(run) / CONFIG_JSON
+    if not path.is_file():
+        return None
+    try:
+        return json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise ValueError(f"{path}: not a readable {CONFIG_JSON} ({first_line(e)})") from None
+
+
+def write_episode(run: Path, index: int, record: dict) -> None:
+    """One finished episode (atomic): written as soon as it is flown."""
+    path = episode_path(run, index)
+    make_folder(path.parent)
+    _write_json(path, record)
+
+
+def read_episodes(run: Path) -> dict[int, dict]:
+    """The finished episodes of a fly run by index ({} for none); a file that is not readable
+    JSON (never the case for atomic writes) is left out, so that episode is flown again."""
+    found = {}
+    folder = Path(run) / EPISODES_DIR
+    for path in sorted(folder.glob("[0-9]*.json")) if folder.is_dir() else []:
+        try:
+            found[int(path.stem)] = json.loads(path.read_text())
+        except (ValueError, OSError):
+            continue
+    return found
+
+
+def write_flight_report(run: Path, summary: dict, rows: list[dict]) -> None:
+    """episodes.csv (one row per episode) and summary.json, the last file a fly run writes."""
+    atomic_write_text(Path(run) / EPISODES_CSV, csv_text(rows))
+    _write_json(Path(run) / SUMMARY_JSON, summary)
+
+
+def read_flight_summary(run: Path) -> dict:
+    """summary.json of a finished fly run; anything else is a one-line ValueError naming it."""
+    path = Path(run) / SUMMARY_JSON
+    try:
+        summary = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise ValueError(f"{path}: no {SUMMARY_JSON} (not a finished fly run)") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise ValueError(f"{path}: not a readable {SUMMARY_JSON} ({first_line(e)})") from None
+    if not isinstance(summary, dict) or summary.get("kind") != FLIGHT_KIND:
+        raise ValueError(f"{path}: not the {SUMMARY_JSON} of a 'stillbox-bench fly' run")
+    return summary

@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .choices import MAX_STEPS, YAW_MODES
 from .controller import ControllerConfig, plan
 from .dynamics import DroneState, DynamicsConfig, camera_pose, heading, step
 from .obstacles import PointMemory, SensingConfig
@@ -27,7 +28,6 @@ Render = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
 #: far (oldest first, the current one last, at most HISTORY), the current frame's true depth.
 DepthSource = Callable[[Sequence[np.ndarray], np.ndarray, Sequence[np.ndarray]], np.ndarray]
 HISTORY = 8
-YAW_MODES = ("goal", "line")
 
 
 def oracle(
@@ -55,7 +55,7 @@ class FlightConfig:
     sensing: SensingConfig = field(default_factory=SensingConfig)
     drone_radius: float = 0.25
     reach_radius: float = 1.0
-    max_steps: int = 300
+    max_steps: int = MAX_STEPS
     yaw: str = "goal"
 
 

@@ -56,3 +56,70 @@ def summarise(results: Sequence[EpisodeResult]) -> dict:
             float(np.mean([r.path_ratio for r in reached])) if reached else None
         ),
     }
+
+
+def source_summary(results: Sequence[EpisodeResult], errors: Sequence[dict]) -> dict:
+    """What ``fly`` writes in summary.json for one depth source: :func:`summarise`, the least
+    clearance of all episodes (m), seconds per control step over every step (render, depth,
+    control) and the depth error of the source over every frame it answered (``errors``: one
+    sources.Scored.errors() per episode; frames weigh equally)."""
+    out = summarise(results)
+    steps = sum(r.steps for r in results)
+    out["min_min_clearance_m"] = min((r.min_clearance for r in results), default=None)
+    for name in ("render_s", "depth_s", "control_s"):
+        total = sum(getattr(r, name) * r.steps for r in results)
+        out[f"{name}_per_step"] = total / steps if steps else None
+    frames = sum(e["depth_frames"] for e in errors)
+    out["depth_frames"] = frames
+    for key in ("depth_mae_m", "depth_mre"):
+        total = sum(e[key] * e["depth_frames"] for e in errors if e["depth_frames"])
+        out[key] = total / frames if frames else None
+    return out
+
+
+#: fly-compare's columns: (CSV name, markdown header, summary.json key, format)
+COMPARISON_COLUMNS = (
+    ("episodes", "episodes", "episodes", "{:d}"),
+    ("success_rate", "success", "success_rate", "{:.0%}"),
+    ("success_ci95_low", "95 % CI", None, None),
+    ("success_ci95_high", None, None, None),
+    ("collided", "collided", "collided", "{:d}"),
+    ("timeout", "timeout", "timeout", "{:d}"),
+    ("mean_min_clearance_m", "mean clearance (m)", "mean_min_clearance_m", "{:.2f}"),
+    ("min_min_clearance_m", "least clearance (m)", "min_min_clearance_m", "{:.2f}"),
+    ("mean_path_ratio_reached", "path ratio", "mean_path_ratio_reached", "{:.3f}"),
+    ("depth_mae_m", "depth MAE (m)", "depth_mae_m", "{:.3f}"),
+    ("depth_mre", "depth MRE", "depth_mre", "{:.3f}"),
+    ("render_ms_per_step", "render (ms/step)", "render_s_per_step", "{:.1f}"),
+    ("depth_ms_per_step", "depth (ms/step)", "depth_s_per_step", "{:.1f}"),
+    ("control_ms_per_step", "control (ms/step)", "control_s_per_step", "{:.1f}"),
+)
+
+
+def comparison_row(run: str, s: dict) -> dict:
+    """One fly-compare CSV row of a run's summary.json (times in ms per step)."""
+    row = {"run": run, "depth": s["depth"]}
+    for name, _, key, _ in COMPARISON_COLUMNS:
+        if key is not None:
+            value = s.get(key)
+            ms = value is not None and name.endswith("_ms_per_step")
+            row[name] = value * 1000 if ms else value
+    row["success_ci95_low"], row["success_ci95_high"] = s["success_rate_ci95"]
+    order = ["run", "depth", *(c[0] for c in COMPARISON_COLUMNS)]
+    return {k: row[k] for k in order}
+
+
+def comparison_markdown(rows: list[dict]) -> str:
+    """fly-compare's table: one row per run (:func:`comparison_row`)."""
+    heads = ["run", "depth", *(c[1] for c in COMPARISON_COLUMNS if c[1])]
+    lines = ["| " + " | ".join(heads) + " |", "|" + "---|" * len(heads)]
+    for row in rows:
+        cells = [row["run"], row["depth"]]
+        for name, head, _, fmt in COMPARISON_COLUMNS:
+            if name == "success_ci95_low":
+                cells.append(f"{row['success_ci95_low']:.0%}-{row['success_ci95_high']:.0%}")
+            elif head:
+                value = row[name]
+                cells.append("-" if value is None else fmt.format(value))
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
