@@ -228,11 +228,11 @@ FLIGHT_MAY_ALSO_LOAD = frozenset(
     {"stillbox_gen.config", "stillbox_gen.scene", "stillbox_gen.shapes", "stillbox_gen.photos"}
 )
 # The one place that starts Blender for `fly --renderer blender`: inside a function (never at
-# import), it checks for bpy (stillbox_gen.workers.require_blender) and starts the persistent
+# import), it checks for bpy (stillbox_gen.worker_setup.require_blender) and starts the persistent
 # worker (stillbox_gen.live). The walks below do not follow these edges; the test of that module
 # checks they stay inside functions.
 FLIGHT_RENDERER = "benchmark.flight.render"
-FLIGHT_RENDERER_STARTS = ("stillbox_gen.workers", "stillbox_gen.live")
+FLIGHT_RENDERER_STARTS = ("stillbox_gen.worker_setup", "stillbox_gen.live")
 
 
 def reachable(graph: dict[str, set[str]], starts: set[str], stop=lambda m: False) -> set[str]:

@@ -38,14 +38,14 @@ def analytic_render(episode: Episode, width: int, height: int) -> Render:
 
 def check_renderer(kind: str) -> None:
     """Before anything starts: ValueError for an unknown ``kind``; for "blender", a one-line
-    ConfigError when bpy is not installed (stillbox_gen.workers.require_blender: it names the
-    ``gen`` extra)."""
+    ConfigError when bpy is not installed (stillbox_gen.worker_setup.require_blender: it names
+    the ``gen`` extra)."""
     if kind not in RENDERERS:
         raise ValueError(f"renderer must be one of {RENDERERS}, got {kind!r}")
     if kind == "blender":
-        from stillbox_gen import workers
+        from stillbox_gen.worker_setup import require_blender
 
-        workers.require_blender()
+        require_blender()
 
 
 @contextlib.contextmanager

@@ -11,7 +11,7 @@ from ..arguments import check_out_folder
 from ..conventions import MAX_DEPTH, NOMINAL_SHIFT
 from ..dataset import Dataset
 from ..errors import ConfigError
-from ..workers import require_blender
+from ..worker_setup import require_blender
 from .flicker import check_photos, config_of, flicker_stats
 from .measure import check_numbers, dataset_stats
 from .report import plot
