@@ -15,8 +15,9 @@ with L_p^s (eq. 5.3, α = 0.15) the sum over references of the mean L1 + DSSIM e
 resolution, from the scale-s depth upsampled bilinearly (§4.7.1), over the pixels the warp
 keeps (and, with ``--occlusion``, not occluded); ξ_s = 1/θ_s and I_t area-downsampled to scale s
 (eq. 5.4; scales smaller than 3×3 pixels have no interior Laplacian and no smooth term).
-DepthNet's depth is floored at metrics.MIN_DEPTH (0.1 m) before use: its 1 + ELU output
-underflows to 0 in float32, where ξ would be infinite.
+DepthNet's depth is floored at metrics.MIN_DEPTH (0.1 m) before use (:func:`floored`): its
+1 + ELU output underflows to 0 in float32, where ξ would be infinite, and at initialisation a
+quarter to a half of its pixels are below 0.1 m (the author's code adds 0.01 m instead).
 λ, κ: Table 4.1's gradient-diffusion optimum for the occlusion setting (κ 0.3; λ 30 without the
 occlusion module, 0.3 with it), as §5.2.4 says, unless the recipe sets them.
 
@@ -50,6 +51,13 @@ from .toy import thesis_value
 EPSILON = 1e-5
 #: The smooth loss of §5.2.4 (Table 4.1's name)
 SMOOTH_LOSS = "gradient_diffusion"
+
+
+def floored(depth: torch.Tensor) -> torch.Tensor:
+    """``max(θ, MIN_DEPTH)`` in value, with θ's gradient everywhere (straight through), so that
+    the pixels under the floor, where a DepthNet starts for a good share of them, are still
+    pushed by the losses (a plain clamp would leave them without gradient)."""
+    return depth + (depth.clamp(min=MIN_DEPTH) - depth).detach()
 
 
 def compensate(poses: torch.Tensor, target_index: torch.Tensor) -> torch.Tensor:
@@ -130,8 +138,7 @@ class PhotometricStep:
         tgt = batch["target_index"].to(self.device)
         ref = batch["reference_index"].to(self.device)
         depths, poses = self._forward(batch)
-        # depth floored at MIN_DEPTH (1 + ELU reaches 0 in float32: ξ = 1/θ would be infinite)
-        depths, poses = [d.float().clamp(min=MIN_DEPTH) for d in depths], poses.float()
+        depths, poses = [floored(d.float()) for d in depths], poses.float()
         b, n, _, h, w = frames.shape
         rows = torch.arange(b, device=self.device)
         translations = normalise_translations(compensate(poses, tgt), ref, self.d0)
