@@ -43,6 +43,8 @@ def test_posenet_gives_every_frame_a_pose_relative_to_the_last():
     depth = both(pair)  # the pair's forward is DepthNet's
     assert [d.shape[-1] for d in depth] == [16, 8, 4, 2, 1]
     assert torch.equal(depth[0], both.depth(pair)[0])
+    depth, poses = both(pair, torch.randn(1, 15, 64, 64))  # training: both outputs
+    assert poses.shape == (1, 5, 3) and torch.equal(depth[0], both.depth(pair)[0])
 
 
 def test_poses_are_compensated_to_the_target_and_normalised_by_the_reference():
@@ -72,11 +74,11 @@ class _Known(torch.nn.Module):
     def __init__(self, depth: torch.Tensor, poses: torch.Tensor):
         super().__init__()
         self.depth, self.poses = depth, poses
-        self.pose = lambda sequence: self.poses
 
-    def forward(self, pair):
+    def forward(self, pair, sequence):
         h, w = self.depth.shape[-2:]
-        return [F.adaptive_avg_pool2d(self.depth, (h // 2**s, w // 2**s)) for s in range(2, 7)]
+        scales = [F.adaptive_avg_pool2d(self.depth, (h // 2**s, w // 2**s)) for s in range(2, 7)]
+        return scales, self.poses
 
 
 @pytest.fixture(scope="module")
@@ -98,7 +100,7 @@ def _known_losses(data: SequenceDataset, indices, wrong=None, occlusion=False):
         poses.append(-move)  # X_i = X_t - T_i: the reprojection module's convention
     depth = torch.stack(depths).unsqueeze(1).clamp(max=1e4)
     net = _Known(depth if wrong is None else wrong(depth), torch.stack(poses))
-    step = PhotometricStep(net, net, None, torch.device("cpu"), WEIGHTS, d0, 30.0, 0.3, occlusion)
+    step = PhotometricStep(net, None, torch.device("cpu"), WEIGHTS, d0, 30.0, 0.3, occlusion)
     with torch.no_grad():
         return step.losses(batch)
 
@@ -136,7 +138,7 @@ def test_training_steps_lower_the_loss(sequences):
     model = registry.build_model("depthnet-unsup-tiny").train()
     r = registry.UNSUPERVISED_RECIPE
     opt = torch.optim.Adam(model.parameters(), lr=1e-3, betas=(r.momentum, r.beta2))
-    step = PhotometricStep(model, model, opt, torch.device("cpu"), r.loss_weights, 0.3, 30.0, 0.3)
+    step = PhotometricStep(model, opt, torch.device("cpu"), r.loss_weights, 0.3, 30.0, 0.3)
     batch = sequences.batch([0, 1, 2, 3], 0)
     first = step.losses(batch)["loss"].item()
     for _ in range(8):

@@ -14,7 +14,8 @@ code). Compensation to the target frame and normalisation are in
 
 :class:`DepthPoseNet` holds a DepthNet (``depth``) and a PoseNet (``pose``) in one module, so
 that a run folder's checkpoint has both; called on a ``(B, 6, H, W)`` pair it is the DepthNet
-(the same outputs, so scoring, ``eval`` and ``infer`` use it as any depth network).
+(the same outputs, so scoring, ``eval`` and ``infer`` use it as any depth network); called with
+the sequence too, it gives both outputs (the training step).
 """
 
 from __future__ import annotations
@@ -80,5 +81,9 @@ class DepthPoseNet(nn.Module):
         self.min_multiple = self.depth.min_multiple
         self.frames = frames
 
-    def forward(self, pair: torch.Tensor) -> list[torch.Tensor]:
-        return self.depth(pair)
+    def forward(self, pair: torch.Tensor, sequence: torch.Tensor | None = None):
+        """DepthNet's outputs for ``pair``; with ``sequence`` ``(B, 3·N, H, W)``, the pair
+        ``(depths, poses)`` (one forward for training, so that DDP sees both networks)."""
+        if sequence is None:
+            return self.depth(pair)
+        return self.depth(pair), self.pose(sequence)

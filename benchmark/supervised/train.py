@@ -341,7 +341,7 @@ class Trainer:
             from ..unsupervised.training import video_training
 
             self.train_set, self.train_step = video_training(
-                cfg, self.model, self.net, self.opt, self.device, self.train_store,
+                cfg, self.net, self.opt, self.device, self.train_store,
                 self.nominal_displacement, amp_dtype(cfg, self.device),
             )  # fmt: skip
         else:

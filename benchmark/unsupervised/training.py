@@ -35,7 +35,6 @@ import torch
 import torch.nn.functional as F
 
 from ..core.metrics import MIN_DEPTH
-from ..core.posenet import DepthPoseNet
 from .reprojection import (
     SSIM_WEIGHT,
     gradient_diffusion_loss,
@@ -99,15 +98,15 @@ def reference_indices(target_index: torch.Tensor, frames: int) -> torch.Tensor:
 class PhotometricStep:
     """One optimiser step of eq. 5.5 on a SequenceDataset batch; returns the loss (0-d).
 
-    ``net``: the DepthPoseNet as trained (its forward is DepthNet's; maybe compiled);
-    ``model``: the plain DepthPoseNet (its ``pose``); ``weights``: w_s finest first;
+    ``net``: the DepthPoseNet as trained (maybe compiled or DDP-wrapped; called with the pair
+    and the sequence it returns both networks' outputs, see core.posenet.DepthPoseNet);
+    ``weights``: w_s finest first;
     ``d0``: metres; ``occlusion``: the occlusion module on. :meth:`losses` gives the terms.
     """
 
     def __init__(
         self,
         net: torch.nn.Module,
-        model: DepthPoseNet,
         opt: torch.optim.Optimizer,
         device: torch.device,
         weights,
@@ -117,7 +116,7 @@ class PhotometricStep:
         occlusion: bool = False,
         autocast: torch.dtype | None = None,
     ):
-        self.net, self.model, self.opt, self.device = net, model, opt, device
+        self.net, self.opt, self.device = net, opt, device
         self.weights, self.d0 = tuple(weights), d0
         self.smooth_weight, self.kappa, self.occlusion = smooth_weight, kappa, occlusion
         self.autocast = autocast
@@ -126,9 +125,9 @@ class PhotometricStep:
         pair = batch["input"].to(self.device)
         sequence = batch["sequence"].to(self.device)
         if self.autocast is None:
-            return self.net(pair), self.model.pose(sequence)
+            return self.net(pair, sequence)
         with torch.autocast(self.device.type, self.autocast):
-            return self.net(pair), self.model.pose(sequence)
+            return self.net(pair, sequence)
 
     def losses(self, batch: dict) -> dict[str, torch.Tensor]:
         """``loss`` (eq. 5.5), ``photometric`` and ``smooth`` (their weighted sums over scales)
@@ -195,7 +194,7 @@ class PhotometricStep:
         return loss
 
 
-def video_training(cfg, model, net, opt, device, store, d0: float, autocast=None):
+def video_training(cfg, net, opt, device, store, d0: float, autocast=None):
     """The training set and step of a ``depthnet-unsup*`` run (Trainer.setup): a
     SequenceDataset of ``cfg.sequence_length`` frames over ``store`` and a PhotometricStep
     with ``d0`` metres. FieldError on ``data`` when its scenes are shorter than a sequence."""
@@ -212,6 +211,6 @@ def video_training(cfg, model, net, opt, device, store, d0: float, autocast=None
         )
     lam, kappa = smooth_settings(cfg.smooth_weight, cfg.smooth_kappa, bool(cfg.occlusion))
     step = PhotometricStep(
-        net, model, opt, device, cfg.loss_weights, d0, lam, kappa, bool(cfg.occlusion), autocast
+        net, opt, device, cfg.loss_weights, d0, lam, kappa, bool(cfg.occlusion), autocast
     )
     return SequenceDataset(store, cfg.sequence_length, cfg.seed), step
