@@ -299,6 +299,21 @@ class TrainConfig:
         ),
     )
     workers: int | None = setting(None)
+    sequence_length: int = setting(5, recipe=True)
+    occlusion: bool | None = setting(
+        None,
+        flag=Flag(
+            "--occlusion",
+            {
+                "run": "depthnet-unsup*: drop the pixels the occlusion module finds hidden in "
+                "each reference from the photometric loss (thesis 4.5.6)."
+            },
+            kind="flag",
+            parse=lambda given: given or None,
+        ),
+    )
+    smooth_weight: float | None = setting(None, recipe=True)
+    smooth_kappa: float | None = setting(None, recipe=True)
 
 
 #: TrainConfig's fields with a command-line flag, in TrainConfig's order

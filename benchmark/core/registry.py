@@ -1,7 +1,8 @@
 """Registered methods: a name → what it predicts, how to build its network, how to train it.
 
 Methods (``MODELS``): DepthNet (depth directly), FlowNetS with a depth head, FlowNetS for optical
-flow followed by depth from flow and the known translation (benchmark.core.flow), the same
+flow followed by depth from flow and the known translation (benchmark.core.flow), DepthNet
+trained from video without depth with a PoseNet (``depthnet-unsup``, thesis chapter 5), the same
 geometry fed with ground-truth flow (``oracle-flow``) and a constant depth (``constant``); the last
 two have no network. ``-tiny`` variants (1/8 width) exist for tests and smoke runs. Each
 network's training hyper-parameters are a ``Recipe`` (benchmark.core.config: TrainConfig's recipe
@@ -21,6 +22,7 @@ from stillbox_gen.conventions import MAX_DEPTH
 
 from .config import Recipe
 from .models import FLOW_DIV, DepthNet, FlowNetS
+from .posenet import DepthPoseNet
 
 #: DepthNet's recipe (SGD, lr 0.01, momentum and dampening 0.9, weight decay 4e-4, batch 256,
 #: 55 epochs); depth networks are all trained with it (thesis Table 3.5).
@@ -37,12 +39,32 @@ FLOW_RECIPE = replace(DEPTH_RECIPE, optimizer="adam", lr=1e-4, loss_scale=1.0 / 
 CLAMPED_RECIPE = replace(DEPTH_RECIPE, shift=5, depth_range=(10.0, 60.0))
 THIN_WIDTH = 0.5  # channel multiplier of the thin clamped DepthNet (thesis 6.4: half the maps)
 
+#: DepthNet trained from video without depth (thesis §5.2, §5.4.2): Adam, lr 2e-4, betas
+#: (0.9, 0.999), sequences of 5 frames, multi-scale weights 1/2^s (eq. 5.5, finest first), no
+#: learning-rate steps (the thesis gives none); weight decay 4e-4 as DepthNet's (the thesis adds
+#: "classic L2 regularisation" to eq. 5.2 without a value). Batch 32 and 20 epochs are this
+#: project's CPU budget (the thesis trained about 10 hours on a GPU).
+UNSUPERVISED_RECIPE = replace(
+    DEPTH_RECIPE,
+    optimizer="adam",
+    lr=2e-4,
+    momentum=0.9,
+    beta2=0.999,
+    batch_size=32,
+    epochs=20,
+    milestones=(),
+    loss_weights=tuple(1 / 2**s for s in range(5)),
+    sequence_length=5,
+)
+
 
 class Target(Enum):
     """What a method's network learns and outputs (the value: data.PairDataset's ``target``)."""
 
     DEPTH = "depth"  # metres, multi-scale list as DepthNet; multi-scale L1 loss
     FLOW = "flow"  # pixels of the input resolution, multi-scale list; multi-scale EPE loss
+    VIDEO = "video"  # depth (metres at the nominal displacement) learnt from frame sequences
+    # without ground truth: photometric + smooth loss (benchmark.unsupervised.training)
 
 
 class Scoring(Enum):
@@ -77,10 +99,14 @@ class Kind:
 
 DEPTH = Kind("depth", Target.DEPTH, Scoring.DEPTH, best_by="mae")
 FLOW = Kind("flow", Target.FLOW, Scoring.FLOW, best_by="epe")
+#: depth learnt without ground truth, scored as DEPTH (best.pt: the validation MAE against the
+#: ground truth, where the dataset has it; the loss never sees it)
+UNSUPERVISED = Kind("unsupervised-depth", Target.VIDEO, Scoring.DEPTH, best_by="mae")
 ORACLE_FLOW = Kind("oracle-flow", None, Scoring.EXACT_FLOW)
 CONSTANT = Kind("constant", None, Scoring.CONSTANT)
-#: every kind of method: a depth network, a flow network (depth by geometry), or no network
-KINDS = (DEPTH, FLOW, ORACLE_FLOW, CONSTANT)
+#: every kind of method: a depth network (supervised or not), a flow network (depth by
+#: geometry), or no network
+KINDS = (DEPTH, FLOW, UNSUPERVISED, ORACLE_FLOW, CONSTANT)
 
 TINY_WIDTH = 0.125  # channel multiplier of the -tiny variants
 
@@ -161,6 +187,21 @@ def _specs() -> list[ModelSpec]:
             lambda: FlowNetS("flow", width=TINY_WIDTH, batch_norm=True),
             FLOW,
             FLOW_RECIPE,
+        ),
+        ModelSpec(
+            "depthnet-unsup",
+            "DepthNet + PoseNet (3 translations) trained from 5-frame sequences without depth "
+            "(thesis 5.2)",
+            lambda: DepthPoseNet(UNSUPERVISED_RECIPE.sequence_length),
+            UNSUPERVISED,
+            UNSUPERVISED_RECIPE,
+        ),
+        ModelSpec(
+            "depthnet-unsup-tiny",
+            f"depthnet-unsup {tiny}",
+            lambda: DepthPoseNet(UNSUPERVISED_RECIPE.sequence_length, TINY_WIDTH),
+            UNSUPERVISED,
+            UNSUPERVISED_RECIPE,
         ),
         ModelSpec(
             "oracle-flow",

@@ -283,6 +283,10 @@ LEARNING_CURVES = {
         ("train_loss", f"train loss (multi-scale EPE on flow / {FLOW_DIV:g})"),
         ("val_epe", "validation EPE (px)"),
     ),
+    "unsupervised-depth": (
+        ("train_loss", "train loss (photometric + smooth, eq. 5.5)"),
+        ("val_mae", "validation MAE (m)"),
+    ),
 }
 
 

@@ -180,6 +180,7 @@ RESUMED_FIELDS = (
     *("epochs", "batch_size", "lr", "shift", "depth_range", "seed", "pretrained"),
     *("optimizer", "momentum", "dampening", "beta2", "weight_decay"),
     *("milestones", "gamma", "loss_weights", "loss_scale"),
+    *("sequence_length", "occlusion", "smooth_weight", "smooth_kappa"),
 )
 
 
@@ -336,9 +337,18 @@ class Trainer:
         # depth targets are expressed for the nominal shift of the training set's displacement
         disp = np.median([s.displacement for s in train_scenes])
         self.nominal_displacement = float(cfg.shift * disp)
-        self.train_set = PairDataset(
-            self.train_store, "train", cfg.shift, cfg.seed, self.kind.target.value, cfg.depth_range
-        )
+        if self.kind.target is registry.Target.VIDEO:  # no depth: photometric loss (chapter 5)
+            from ..unsupervised.training import video_training
+
+            self.train_set, self.train_step = video_training(
+                cfg, self.net, self.opt, self.device, self.train_store,
+                self.nominal_displacement, amp_dtype(cfg, self.device),
+            )  # fmt: skip
+        else:
+            self.train_set = PairDataset(
+                self.train_store, "train", cfg.shift, cfg.seed, self.kind.target.value,
+                cfg.depth_range,
+            )  # fmt: skip
         self.val_set = PairDataset(self.val_store, "eval", cfg.shift)
         self.per_rank_batch = max(1, cfg.batch_size // self.world)
         self.sampler = EpochSampler(len(self.train_set), cfg.seed, self.rank, self.world)

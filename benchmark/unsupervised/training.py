@@ -1,0 +1,216 @@
+"""Training DepthNet without depth (thesis §5.2, Fig. 5.1, eqs. 5.2-5.5): the training step.
+
+Per sample (benchmark.unsupervised.sequences): N frames, a target t and a reference r. PoseNet
+gives every frame's translation relative to the last frame; they are compensated to the target
+(:func:`compensate`, the target's becomes 0) and normalised (:func:`normalise_translations`,
+eq. 5.2) so that ``‖t_r‖ = d0``, the nominal displacement the supervised DepthNet answers for
+(``shift`` × the training split's median metres per frame: Trainer's ``nominal_displacement``),
+so the network keeps the supervised convention and is scored the same way. DepthNet reads the
+(r, t) pair; every frame i ≠ t is warped to t with DepthNet's depth and the normalised
+translations (benchmark.unsupervised.reprojection.inverse_warp), and the loss is eq. 5.5:
+
+    L = Σ_s w_s · (L_p^s + λ·L_gdiff(ξ_s, I_t^s, κ)),   w_s = 1/2^s (the recipe's loss_weights)
+
+with L_p^s (eq. 5.3, α = 0.15) the sum over references of the mean L1 + DSSIM error at full
+resolution, from the scale-s depth upsampled bilinearly (§4.7.1), over the pixels the warp
+keeps (and, with ``--occlusion``, not occluded); ξ_s = 1/θ_s and I_t area-downsampled to scale s
+(eq. 5.4; scales smaller than 3×3 pixels have no interior Laplacian and no smooth term).
+DepthNet's depth is floored at metrics.MIN_DEPTH (0.1 m) before use (:func:`floored`): its
+1 + ELU output underflows to 0 in float32, where ξ would be infinite, and at initialisation a
+quarter to a half of its pixels are below 0.1 m (the author's code adds 0.01 m instead).
+λ, κ: Table 4.1's gradient-diffusion optimum for the occlusion setting (κ 0.3; λ 30 without the
+occlusion module, 0.3 with it), as §5.2.4 says, unless the recipe sets them.
+
+Where this differs from the author's code (ClementPinard/unsupervised-depthnet,
+``train_img_pairs.py``; the thesis is followed): the author weighs each scale's photometric
+term by its size ratio and sums the smooth loss over scales unweighted, eq. 5.5 weighs both by
+1/2^s; the author's ε is 1e-5 in training (none in validation), we use :data:`EPSILON` in both.
+The occlusion mask is computed once per reference from the finest scale's (detached, upsampled)
+depth and used at every scale (the thesis does not say; one direct warp instead of five).
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+from ..core.metrics import MIN_DEPTH
+from .reprojection import (
+    SSIM_WEIGHT,
+    gradient_diffusion_loss,
+    inverse_warp,
+    masked_mean,
+    occlusion_mask,
+    photometric_map,
+)
+from .toy import thesis_value
+
+#: ε of eq. 5.2 (the thesis gives no value; the author's training code uses 1e-5), in PoseNet's
+#: (arbitrary) translation unit
+EPSILON = 1e-5
+#: The smooth loss of §5.2.4 (Table 4.1's name)
+SMOOTH_LOSS = "gradient_diffusion"
+
+
+def floored(depth: torch.Tensor) -> torch.Tensor:
+    """``max(θ, MIN_DEPTH)`` in value, with θ's gradient everywhere (straight through), so that
+    the pixels under the floor, where a DepthNet starts for a good share of them, are still
+    pushed by the losses (a plain clamp would leave them without gradient)."""
+    return depth + (depth.clamp(min=MIN_DEPTH) - depth).detach()
+
+
+def compensate(poses: torch.Tensor, target_index: torch.Tensor) -> torch.Tensor:
+    """Translations relative to the last frame ``(B, N, 3)`` -> relative to the target frame:
+    ``τ_i − τ_t`` (stabilised frames: ``X_i = X_t + τ_i − τ_t``); the target's row is 0."""
+    rows = torch.arange(poses.shape[0], device=poses.device)
+    return poses - poses[rows, target_index].unsqueeze(1)
+
+
+def normalise_translations(
+    translations: torch.Tensor,
+    reference_index: torch.Tensor,
+    d0: float,
+    eps: float = EPSILON,
+) -> torch.Tensor:
+    """Eq. 5.2: every translation ``(B, N, 3)`` times ``d0 / (ε + ‖t_r‖)``, ``t_r`` the
+    reference's (one ratio per sample): ``‖t_r‖`` becomes ``d0`` (metres) up to ε."""
+    rows = torch.arange(translations.shape[0], device=translations.device)
+    norm = translations[rows, reference_index].norm(dim=1)
+    return translations * (d0 / (eps + norm)).view(-1, 1, 1)
+
+
+def smooth_settings(
+    weight: float | None, kappa: float | None, occlusion: bool
+) -> tuple[float, float]:
+    """(λ, κ) of the smooth loss: the given values, else Table 4.1's gradient-diffusion optimum
+    with the occlusion module off / on (§5.2.4)."""
+    lam = thesis_value(SMOOTH_LOSS, occlusion, "lambda") if weight is None else weight
+    kap = thesis_value(SMOOTH_LOSS, occlusion, "kappa") if kappa is None else kappa
+    return float(lam), float(kap)
+
+
+def reference_indices(target_index: torch.Tensor, frames: int) -> torch.Tensor:
+    """``(B, N − 1)``: every frame index but the target's, in order."""
+    every = torch.arange(frames, device=target_index.device).expand(len(target_index), frames)
+    return every[every != target_index.unsqueeze(1)].view(-1, frames - 1)
+
+
+class PhotometricStep:
+    """One optimiser step of eq. 5.5 on a SequenceDataset batch; returns the loss (0-d).
+
+    ``net``: the DepthPoseNet as trained (maybe compiled or DDP-wrapped; called with the pair
+    and the sequence it returns both networks' outputs, see core.posenet.DepthPoseNet);
+    ``weights``: w_s finest first;
+    ``d0``: metres; ``occlusion``: the occlusion module on. :meth:`losses` gives the terms.
+    """
+
+    def __init__(
+        self,
+        net: torch.nn.Module,
+        opt: torch.optim.Optimizer,
+        device: torch.device,
+        weights,
+        d0: float,
+        smooth_weight: float,
+        kappa: float,
+        occlusion: bool = False,
+        autocast: torch.dtype | None = None,
+    ):
+        self.net, self.opt, self.device = net, opt, device
+        self.weights, self.d0 = tuple(weights), d0
+        self.smooth_weight, self.kappa, self.occlusion = smooth_weight, kappa, occlusion
+        self.autocast = autocast
+
+    def _forward(self, batch: dict) -> tuple[list[torch.Tensor], torch.Tensor]:
+        pair = batch["input"].to(self.device)
+        sequence = batch["sequence"].to(self.device)
+        if self.autocast is None:
+            return self.net(pair, sequence)
+        with torch.autocast(self.device.type, self.autocast):
+            return self.net(pair, sequence)
+
+    def losses(self, batch: dict) -> dict[str, torch.Tensor]:
+        """``loss`` (eq. 5.5), ``photometric`` and ``smooth`` (their weighted sums over scales)
+        and ``translations`` ``(B, N, 3)``: the normalised translations used (metres)."""
+        frames = batch["frames"].to(self.device)
+        K = batch["K"].to(self.device)
+        tgt = batch["target_index"].to(self.device)
+        ref = batch["reference_index"].to(self.device)
+        depths, poses = self._forward(batch)
+        depths, poses = [floored(d.float()) for d in depths], poses.float()
+        b, n, _, h, w = frames.shape
+        rows = torch.arange(b, device=self.device)
+        translations = normalise_translations(compensate(poses, tgt), ref, self.d0)
+        others = reference_indices(tgt, n)  # (B, N - 1)
+        target = frames[rows, tgt]
+        # every (scale, sample, reference) warped in one batch, scale-major then sample-major
+        scales, pairs = len(depths), b * (n - 1)
+        up = torch.cat(
+            [F.interpolate(d, size=(h, w), mode="bilinear", align_corners=False) for d in depths]
+        )  # (S·B, 1, H, W)
+        up = up.view(scales, b, 1, h, w).repeat_interleave(n - 1, 1).reshape(-1, 1, h, w)
+        picked = (rows.unsqueeze(1), others)
+        refs = frames[picked].reshape(pairs, 3, h, w).repeat(scales, 1, 1, 1)
+        moves = translations[picked].reshape(pairs, 3).repeat(scales, 1)
+        Ks = K.repeat_interleave(n - 1, 0).repeat(scales, 1, 1)
+        warped, valid = inverse_warp(refs, up, None, moves, Ks)
+        occluded = self._occlusions(depths[0], translations, others, K, (h, w))
+        if occluded is not None:
+            valid = valid & ~occluded.repeat(scales, 1, 1, 1)
+        targets = target.repeat_interleave(n - 1, 0).repeat(scales, 1, 1, 1)
+        errors = masked_mean(photometric_map(targets, warped, SSIM_WEIGHT), valid)
+        per_scale = errors.view(scales, b, n - 1).sum(2).mean(1)  # eq. 5.3 per scale
+        weights = torch.tensor(self.weights, dtype=per_scale.dtype, device=self.device)
+        photo = (weights * per_scale).sum()
+        smooth = frames.new_zeros(())
+        for weight, depth in zip(self.weights, depths, strict=True):
+            if min(depth.shape[-2:]) >= 3:
+                image = F.adaptive_avg_pool2d(target, depth.shape[-2:])
+                gdiff = gradient_diffusion_loss(1 / depth, image, self.kappa).mean()
+                smooth = smooth + weight * self.smooth_weight * gdiff
+        return {"loss": photo + smooth, "photometric": photo, "smooth": smooth,
+                "translations": translations}  # fmt: skip
+
+    def _occlusions(self, depth, translations, others, K, size) -> torch.Tensor | None:
+        """``(B·(N − 1), 1, H, W)``, sample-major: the target pixels the occlusion module finds
+        hidden in each reference (finest scale's depth, detached), or None when it is off."""
+        if not self.occlusion:
+            return None
+        b, refs = others.shape
+        up = F.interpolate(depth.detach(), size=size, mode="bilinear", align_corners=False)
+        moves = translations[torch.arange(b, device=depth.device).unsqueeze(1), others]
+        return occlusion_mask(
+            up.repeat_interleave(refs, 0),
+            None,
+            moves.reshape(-1, 3).detach(),
+            K.repeat_interleave(refs, 0),
+        )
+
+    def __call__(self, batch: dict) -> torch.Tensor:
+        loss = self.losses(batch)["loss"]
+        self.opt.zero_grad(set_to_none=True)
+        loss.backward()
+        self.opt.step()
+        return loss
+
+
+def video_training(cfg, net, opt, device, store, d0: float, autocast=None):
+    """The training set and step of a ``depthnet-unsup*`` run (Trainer.setup): a
+    SequenceDataset of ``cfg.sequence_length`` frames over ``store`` and a PhotometricStep
+    with ``d0`` metres. FieldError on ``data`` when its scenes are shorter than a sequence."""
+    from ..core.errors import FieldError
+    from .sequences import SequenceDataset
+
+    frames = min(len(s.rgb) for s in store.scenes)
+    if frames < cfg.sequence_length:
+        raise FieldError(
+            "data",
+            f"scenes of {frames} frames; '{cfg.model}' trains on sequences of "
+            f"{cfg.sequence_length}",
+            where=f" {cfg.data}",
+        )
+    lam, kappa = smooth_settings(cfg.smooth_weight, cfg.smooth_kappa, bool(cfg.occlusion))
+    step = PhotometricStep(
+        net, opt, device, cfg.loss_weights, d0, lam, kappa, bool(cfg.occlusion), autocast
+    )
+    return SequenceDataset(store, cfg.sequence_length, cfg.seed), step
