@@ -184,6 +184,25 @@ def test_scored_errors_against_hand_values():
         "depth_frames": 2,
         "depth_mae_m": pytest.approx(1.5),
         "depth_mre": pytest.approx(0.15),
+        "near_mae_m": pytest.approx(1.5),  # every pixel is within the 15 m range
+        "missed_near": 0.0,
+        "phantom_near": None,  # no pixel is truly beyond it
     }
     scored.reset()
-    assert scored.errors() == {"depth_frames": 0, "depth_mae_m": None, "depth_mre": None}
+    assert scored.errors() == dict.fromkeys(e) | {"depth_frames": 0}
+
+
+def test_scored_near_range_errors_against_hand_values():
+    """Within the sensing range: an obstacle estimated beyond it is missed, a far wall estimated
+    within it is a phantom; the near MAE ignores the far pixels."""
+    truth = np.array([[4.0, 8.0, 30.0, 40.0]], np.float32)  # two near pixels, two far
+    answers = iter([np.array([[5.0, 20.0, 10.0, 40.0]]), np.array([[4.0, 8.0, 30.0, 40.0]])])
+    scored = Scored(lambda rgbs, true_depth, poses: next(answers), near_range=15.0)
+    scored([], truth, [])
+    e = scored.errors()
+    assert e["near_mae_m"] == pytest.approx((1 + 12) / 2)
+    assert e["missed_near"] == pytest.approx(0.5) and e["phantom_near"] == pytest.approx(0.5)
+    scored([], truth, [])  # exact: the means over both frames halve
+    e = scored.errors()
+    assert e["near_mae_m"] == pytest.approx(13 / 4)
+    assert e["missed_near"] == pytest.approx(0.25) and e["phantom_near"] == pytest.approx(0.25)

@@ -254,7 +254,9 @@ def _fly(out: Path, config: dict, source, flight, new: bool, progress: bool) -> 
         with folder_lock(out, "--out"):
             runfolder.write_config(out, config)
             try:
-                return fly_run(out, config, Scored(source), flight, progress=progress)
+                return fly_run(
+                    out, config, Scored(source, flight.sensing.max_range), flight, progress=progress
+                )
             except BaseException:
                 if new and not runfolder.read_episodes(out):
                     (out / runfolder.CONFIG_JSON).unlink()

@@ -23,7 +23,7 @@ from .plots import episode_figure
 from .render import open_renderer
 from .simulate import EpisodeResult, FlightConfig, fly
 from .sources import Scored
-from .summary import OUTCOMES, episode_row, source_summary
+from .summary import ERROR_KEYS, OUTCOMES, episode_row, source_summary
 
 RESULT_FIELDS = [f.name for f in dataclasses.fields(EpisodeResult)]
 
@@ -51,7 +51,7 @@ def row_of(record: dict, dt: float) -> dict:
     xyz = ("x", "y", "z")
     row |= {f"start_{a}_m": v for a, v in zip(xyz, record["start"], strict=True)}
     row |= {f"goal_{a}_m": v for a, v in zip(xyz, record["goal"], strict=True)}
-    return row | {k: record[k] for k in ("depth_frames", "depth_mae_m", "depth_mre")}
+    return row | {k: record.get(k) for k in ("depth_frames", *ERROR_KEYS)}
 
 
 def fly_run(

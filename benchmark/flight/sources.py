@@ -29,7 +29,9 @@ from ..supervised.evaluate import predict as predict_depth
 from ..video.infer import frame_depth, network_outputs
 from ..video.multishift import EMA_LAMBDA, ShiftPlanner, closest_shift, displacements
 from ..video.network import depth_network
+from .obstacles import SensingConfig
 from .simulate import DepthSource
+from .summary import ERROR_KEYS
 
 UNSEEN = np.inf  # metres: a pixel without depth (no obstacle point, obstacles.camera_points)
 
@@ -122,10 +124,13 @@ class FlowDepth:
 class Scored:
     """A depth source whose answers are scored against the rendered depth (core.metrics: MAE in
     metres, MRE; predictions clamped to [MIN_DEPTH, MAX_DEPTH], truth clipped to MAX_DEPTH) on
-    the frames where it gave depth (not :data:`UNSEEN`), per episode. The frames are kept and
-    scored by :meth:`errors`, so that the time of a call is the source's alone."""
+    the frames where it gave depth (not :data:`UNSEEN`), per episode, over every pixel and
+    within ``near_range`` (m: the sensing range, obstacles.SensingConfig.max_range; see
+    :data:`ERROR_KEYS`). The frames are kept and scored by :meth:`errors`, so that the time of a
+    call is the source's alone."""
 
     source: DepthSource
+    near_range: float = SensingConfig.max_range
     frames: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list)
 
     def reset(self) -> None:
@@ -141,13 +146,32 @@ class Scored:
         return depth
 
     def errors(self) -> dict:
-        """This episode's ``depth_frames`` scored (frames with a valid pixel) and their mean
-        ``depth_mae_m`` and ``depth_mre`` (None without any)."""
+        """This episode's ``depth_frames`` scored (frames with a valid pixel) and the mean of
+        each :data:`ERROR_KEYS` over them (None without any; a frame with no pixel of a kind
+        does not count in that kind's mean)."""
         if not self.frames:
-            return {"depth_frames": 0, "depth_mae_m": None, "depth_mre": None}
+            return {"depth_frames": 0} | dict.fromkeys(ERROR_KEYS)
         pred, gt = (torch.from_numpy(np.stack(a)) for a in zip(*self.frames, strict=True))
         m = metrics.image_metrics(pred, gt)
         kept = m["valid_pixels"] > 0
-        n = int(kept.sum())
-        mean = {k: float(m[k][kept].mean()) if n else None for k in ("mae", "mre")}
-        return {"depth_frames": n, "depth_mae_m": mean["mae"], "depth_mre": mean["mre"]}
+        near = gt <= self.near_range
+        near_gt = torch.where(near, gt, torch.full_like(gt, torch.nan))  # far pixels invalid
+        per_frame = {
+            "depth_mae_m": m["mae"],
+            "depth_mre": m["mre"],
+            "near_mae_m": metrics.image_metrics(pred, near_gt)["mae"],
+            "missed_near": _fraction(pred > self.near_range, near),
+            "phantom_near": _fraction(pred <= self.near_range, ~near & (gt > 0)),
+        }
+        out = {"depth_frames": int(kept.sum())}
+        for key, values in per_frame.items():
+            values = values[kept]
+            values = values[~torch.isnan(values)]
+            out[key] = float(values.mean()) if len(values) else None
+        return out
+
+
+def _fraction(hit: torch.Tensor, among: torch.Tensor) -> torch.Tensor:
+    """Per frame (B,): the fraction of the ``among`` pixels where ``hit`` (NaN where none)."""
+    n = among.sum((1, 2)).double()
+    return (hit & among).sum((1, 2)).double() / n.where(n > 0, torch.nan)

@@ -7,7 +7,17 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from .obstacles import SensingConfig
 from .simulate import EpisodeResult
+
+#: Per-episode error keys of :meth:`sources.Scored.errors` (besides ``depth_frames``), each a
+#: mean over the frames the source answered: MAE (m) and MRE over every pixel; MAE over the
+#: pixels truly within the sensing range (what becomes obstacle points); ``missed_near``: the
+#: fraction of those pixels estimated beyond the range (an obstacle not seen: crashes);
+#: ``phantom_near``: the fraction of the pixels truly beyond the range estimated within it (an
+#: obstacle that is not there: detours and timeouts).
+ERROR_KEYS = ("depth_mae_m", "depth_mre", "near_mae_m", "missed_near", "phantom_near")
+NEAR = f"< {SensingConfig.max_range:g} m"  # fly-compare's header of the near-range columns
 
 OUTCOMES = ("reached", "collided", "timeout")
 Z_95 = 1.959963984540054  # two-sided 95 % normal quantile
@@ -69,11 +79,11 @@ def source_summary(results: Sequence[EpisodeResult], errors: Sequence[dict]) -> 
     for name in ("render_s", "depth_s", "control_s"):
         total = sum(getattr(r, name) * r.steps for r in results)
         out[f"{name}_per_step"] = total / steps if steps else None
-    frames = sum(e["depth_frames"] for e in errors)
-    out["depth_frames"] = frames
-    for key in ("depth_mae_m", "depth_mre"):
-        total = sum(e[key] * e["depth_frames"] for e in errors if e["depth_frames"])
-        out[key] = total / frames if frames else None
+    out["depth_frames"] = sum(e["depth_frames"] for e in errors)
+    for key in ERROR_KEYS:
+        scored = [(e[key], e["depth_frames"]) for e in errors if e.get(key) is not None]
+        frames = sum(n for _, n in scored)
+        out[key] = sum(v * n for v, n in scored) / frames if frames else None
     return out
 
 
@@ -90,6 +100,9 @@ COMPARISON_COLUMNS = (
     ("mean_path_ratio_reached", "path ratio", "mean_path_ratio_reached", "{:.3f}"),
     ("depth_mae_m", "depth MAE (m)", "depth_mae_m", "{:.3f}"),
     ("depth_mre", "depth MRE", "depth_mre", "{:.3f}"),
+    ("near_mae_m", f"MAE {NEAR} (m)", "near_mae_m", "{:.2f}"),
+    ("missed_near", f"missed {NEAR}", "missed_near", "{:.0%}"),
+    ("phantom_near", f"phantom {NEAR}", "phantom_near", "{:.0%}"),
     ("render_ms_per_step", "render (ms/step)", "render_s_per_step", "{:.1f}"),
     ("depth_ms_per_step", "depth (ms/step)", "depth_s_per_step", "{:.1f}"),
     ("control_ms_per_step", "control (ms/step)", "control_s_per_step", "{:.1f}"),
