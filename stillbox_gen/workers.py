@@ -226,11 +226,16 @@ class LocalPool:
             return self._pool.submit(render_scene, spec, str(tmp_dir), image_format, legacy)
 
     def kill(self) -> None:
-        """Stop workers that crashed or hang (kills the processes, waits for nothing)."""
-        for proc in list((getattr(self._pool, "_processes", None) or {}).values()):
+        """Stop workers that crashed or hang: kill the processes, then shut the pool down once
+        its manager thread has seen them die. (Python 3.11's ``shutdown(wait=False)`` here races
+        with that thread, which may then print an OSError traceback: CPython gh-132969.)"""
+        procs = list((getattr(self._pool, "_processes", None) or {}).values())
+        for proc in procs:
             if proc.is_alive():
                 proc.kill()
-        self._pool.shutdown(wait=False, cancel_futures=True)
+        for proc in procs:
+            proc.join(timeout=10)
+        self._pool.shutdown(wait=True, cancel_futures=True)
 
     def shutdown(self) -> None:
         self._pool.shutdown(wait=True)
