@@ -8,11 +8,10 @@ import json
 
 import numpy as np
 import pytest
-import torch
 from conftest import invoke_main
+from test_bench_hardening import write_checkpoint
 
 from benchmark import cli
-from benchmark.core import registry
 from benchmark.flight import raycast
 from benchmark.flight.dynamics import camera_pose, heading
 from benchmark.flight.episodes import flight_scene_config, make_episode
@@ -42,16 +41,8 @@ def test_blender_depth_matches_the_analytic_truth_at_the_start():
 
 @pytest.fixture(scope="module")
 def depth_ckpt(tmp_path_factory):
-    path = tmp_path_factory.mktemp("ck") / "tiny.pt"
-    torch.manual_seed(0)
-    ck = {
-        "model": registry.build_model("depthnet-tiny").state_dict(),
-        "model_name": "depthnet-tiny",
-        "nominal_displacement": 0.3,
-        "camera": {"width": 64, "height": 64, "fov_deg": 90.0},
-    }
-    torch.save(ck, path)
-    return path
+    camera = {"width": 64, "height": 64, "fov_deg": 90.0}
+    return write_checkpoint(tmp_path_factory.mktemp("ck") / "tiny.pt", camera=camera)
 
 
 def test_fly_with_blender_oracle_and_a_network(tmp_path, depth_ckpt):

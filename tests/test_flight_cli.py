@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import torch
 from conftest import invoke_main
+from test_bench_hardening import assert_bench_error, write_checkpoint
 
 from benchmark import cli
 from benchmark.core import registry, runfolder
@@ -30,15 +31,6 @@ SUMMARY_KEYS = {
 
 def fly(*args):
     return invoke_main(cli.main, "fly", *args)
-
-
-def one_line_error(proc, *words: str) -> str:
-    lines = proc.stderr.strip().splitlines()
-    assert proc.returncode == 2, proc.stderr
-    assert len(lines) == 1 and lines[0].startswith("stillbox-bench: error: "), proc.stderr
-    for w in words:
-        assert w in lines[0], (w, lines[0])
-    return lines[0]
 
 
 @pytest.fixture(scope="module")
@@ -91,7 +83,7 @@ def test_fly_compare_prints_and_writes_one_row_per_run(runs, tmp_path):
     assert [r["depth"] for r in rows] == ["oracle", "constant"]
     assert float(rows[1]["collided"]) == 2 and float(rows[0]["depth_mae_m"]) == 0
     bad = invoke_main(cli.main, "fly-compare", runs / "oracle", tmp_path)
-    one_line_error(bad, "RUN", "summary.json")
+    assert_bench_error(bad, "RUN", "summary.json")
 
 
 def test_a_run_cut_short_resumes_per_episode(runs, tmp_path):
@@ -101,8 +93,8 @@ def test_a_run_cut_short_resumes_per_episode(runs, tmp_path):
     assert fly("--depth", "oracle", "--episodes", "1", "--out", out, *FAST).returncode == 0
     (out / "summary.json").unlink()  # as if killed before the end: episode 0 is written
     first = runfolder.episode_path(out, 0).read_bytes()
-    one_line_error(fly("--depth", "oracle", "--episodes", "2", "--out", out, *FAST), "--out")
-    one_line_error(
+    assert_bench_error(fly("--depth", "oracle", "--episodes", "2", "--out", out, *FAST), "--out")
+    assert_bench_error(
         fly("--depth", "constant", "--constant-depth", "5", "--out", out, "--resume", *FAST),
         "--resume",
         "depth",
@@ -115,7 +107,7 @@ def test_a_run_cut_short_resumes_per_episode(runs, tmp_path):
     whole = json.loads((runs / "oracle" / "summary.json").read_text())
     for key in ("reached", "collided", "mean_min_clearance_m", "mean_path_ratio_reached"):
         assert s[key] == whole[key]
-    one_line_error(fly("--depth", "oracle", "--out", out, *FAST), "--out", "finished")
+    assert_bench_error(fly("--depth", "oracle", "--out", out, *FAST), "--out", "finished")
 
 
 def test_an_interruption_inside_the_loop_keeps_the_finished_episodes(tmp_path):
@@ -136,15 +128,8 @@ def test_an_interruption_inside_the_loop_keeps_the_finished_episodes(tmp_path):
 
 @pytest.fixture(scope="module")
 def depth_ckpt(tmp_path_factory):
-    path = tmp_path_factory.mktemp("ck") / "tiny.pt"
-    ck = {
-        "model": registry.build_model("depthnet-tiny").state_dict(),
-        "model_name": "depthnet-tiny",
-        "nominal_displacement": 0.3,
-        "camera": {"width": 64, "height": 64, "fov_deg": 90.0},
-    }
-    torch.save(ck, path)
-    return path
+    camera = {"width": 64, "height": 64, "fov_deg": 90.0}
+    return write_checkpoint(tmp_path_factory.mktemp("ck") / "tiny.pt", camera=camera)
 
 
 @pytest.mark.parametrize(
@@ -171,17 +156,17 @@ def test_bad_input_is_one_line_before_anything_is_written(tmp_path, depth_ckpt, 
     argv = [str(a).format(**paths) for a in args]
     out = tmp_path / "run"
     renderer = () if "--renderer" in argv else ("--renderer", "analytic")
-    one_line_error(fly(*argv, "--out", out, "--quiet", *renderer), *words)
+    assert_bench_error(fly(*argv, "--out", out, "--quiet", *renderer), *words)
     assert not out.exists()
 
 
 def test_out_is_checked_first(tmp_path):
     (tmp_path / "file").write_text("x")
-    one_line_error(fly("--depth", "lidar", "--out", tmp_path / "file"), "--out")
+    assert_bench_error(fly("--depth", "lidar", "--out", tmp_path / "file"), "--out")
     (tmp_path / "full").mkdir()
     (tmp_path / "full" / "x").write_text("x")
-    one_line_error(fly("--depth", "oracle", "--out", tmp_path / "full", *FAST), "--out")
-    one_line_error(
+    assert_bench_error(fly("--depth", "oracle", "--out", tmp_path / "full", *FAST), "--out")
+    assert_bench_error(
         fly("--depth", "oracle", "--out", tmp_path / "new", "--resume", *FAST), "--resume"
     )
 
@@ -192,7 +177,7 @@ def test_blender_renderer_without_bpy_names_the_gen_extra(tmp_path, monkeypatch)
         importlib.util, "find_spec", lambda name, *a: None if name == "bpy" else real(name, *a)
     )
     out = tmp_path / "run"
-    one_line_error(fly("--depth", "oracle", "--out", out, "--renderer", "blender"), "[gen]")
+    assert_bench_error(fly("--depth", "oracle", "--out", out, "--renderer", "blender"), "[gen]")
     assert not out.exists()
 
 
