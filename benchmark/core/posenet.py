@@ -30,6 +30,14 @@ POSE_CHANNELS = (16, 32, 64, 128, 256, 256, 256)
 POSE_KERNELS = (7, 5, 3, 3, 3, 3, 3)
 #: PoseNet's outputs are multiplied by this (the author's code: 0.1): small poses at first
 POSE_SCALE = 0.1
+#: DepthPoseNet's DepthNet starts at this depth everywhere (metres at the nominal displacement;
+#: the toy study's start depth, thesis Fig. 4.11): its prediction convs get zero weights and the
+#: bias giving it through 1 + ELU. With DepthNet's own initialisation, a quarter (``-tiny``) to a
+#: half (full width) of its first outputs are below 0.1 m (spikes of ξ = 1/θ up to 10 /m), and the
+#: smooth loss of those spikes is 10⁴ times the photometric loss: the first steps only flatten
+#: them, pulling the neighbouring depths towards 0.1 m (measured: see the README, "Training
+#: without depth").
+INITIAL_DEPTH = 10.0
 
 
 class PoseNet(nn.Module):
@@ -69,15 +77,29 @@ class PoseNet(nn.Module):
         return torch.cat([out, torch.zeros_like(out[:, :1])], 1)
 
 
+def start_flat(net: DepthNet, depth: float) -> None:
+    """Give ``net``'s prediction convs (every scale) zero weights and the bias whose 1 + ELU is
+    ``depth`` (metres, ≥ 1): it then outputs ``depth`` at every pixel and scale, and learns
+    from there (the weights get gradients from the first step; the layers before them from the
+    second)."""
+    if depth < 1:
+        raise ValueError(f"start_flat: depth >= 1 m (1 + ELU is linear there), got {depth}")
+    for name, m in net.named_modules():
+        if name.startswith(f"predict_{net.head}"):
+            nn.init.zeros_(m.weight)
+            nn.init.constant_(m.bias, depth - 1)
+
+
 class DepthPoseNet(nn.Module):
     """DepthNet + PoseNet trained together from video (thesis Fig. 5.1); ``forward`` is the
     DepthNet's (a pair ``(B, 6, H, W)`` -> its multi-scale depth list, metres at the nominal
-    displacement)."""
+    displacement). The DepthNet starts flat at :data:`INITIAL_DEPTH` (:func:`start_flat`)."""
 
     def __init__(self, frames: int, width: float = 1.0, dof: int = 3):
         super().__init__()
         self.depth = DepthNet(width=width)
         self.pose = PoseNet(frames, dof, width)
+        start_flat(self.depth, INITIAL_DEPTH)
         self.min_multiple = self.depth.min_multiple
         self.frames = frames
 
