@@ -52,8 +52,7 @@ def test_photometric_loss_and_gradient_equal_the_reference(problem, occluded):
     expected.sum().backward()
     state = _state(problem, depth)
     if occ is not None:
-        state.occluded[:] = torch.cat(occ, 1).numpy()
-        state.use_occ = True
+        state.set_occluded(torch.cat(occ, 1).numpy())
     got = state.photometric()
     np.testing.assert_allclose(got, expected.detach().numpy(), rtol=1e-6, atol=0)
     _assert_gradient(state.grad, d.grad)

@@ -460,8 +460,12 @@ class _Kernels:
         self.m, self.v = np.zeros_like(depth), np.zeros_like(depth)
         self.grad = np.zeros_like(depth)
         b, h, w = depth.shape
-        self.occluded = np.zeros((b, len(REFERENCES), h, w), dtype=np.bool_)
+        refs = len(REFERENCES)
+        self.occluded = np.zeros((b, refs, h, w), dtype=np.bool_)
         self.use_occ = False
+        self.work = _kernels().photometric_work(b, problem.points, refs, h, w)
+        self.kept = np.empty((b // problem.points, h, w, refs, problem.points), np.float32)
+        self.set_occluded(None)
         if smooth is not None:
             self.code = _kernels().SMOOTH_CODES[smooth]
             self.wf, self.wl = self.a.edge_weights(problem, smooth)
@@ -471,13 +475,21 @@ class _Kernels:
         _kernels().occlusions(self.depth, a.scene, a.rays, a.offsets, a.back_rays,
                                a.back_offsets, ODM_DEPTH_RATIO, ODM_DILATION, MAX_SQUARE,
                                self.occluded)  # fmt: skip
-        self.use_occ = True
+        self.set_occluded(self.occluded)
+
+    def set_occluded(self, occluded: np.ndarray | None) -> None:
+        """Drop the pixels of ``occluded`` ``(B, R, H, W)`` bool from the photometric loss
+        (None: keep them all)."""
+        self.use_occ = occluded is not None
+        if occluded is not None and occluded is not self.occluded:
+            self.occluded[:] = occluded
+        _kernels().kept_weights(self.occluded, self.problem.points, self.use_occ, self.kept)
 
     def photometric(self) -> np.ndarray:
         """Photometric loss ``(B,)``; its gradient in ``self.grad`` (overwritten)."""
         a = self.a
-        return _kernels().photometric(self.depth, a.scene, a.target, a.coef, a.rays, a.offsets,
-                                       self.occluded, self.use_occ, self.grad)  # fmt: skip
+        return _kernels().photometric(self.depth, self.problem.points, a.target, a.coef, a.rays,
+                                       a.offsets, self.kept, self.grad, *self.work)  # fmt: skip
 
     def step(self, t: int, lr: float) -> None:
         """Adam step ``t`` (from 1) on the gradient of the photometric + smooth loss."""
