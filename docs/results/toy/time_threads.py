@@ -37,5 +37,6 @@ for _ in range(ROUNDS):
     step += M
 for n in states:
     w = sorted(wall[n])
+    rounds = " ".join(f"{x:.3f}" for x in wall[n])
     print(f"{n} thread(s): wall s/it median {w[len(w) // 2]:.4f} min {w[0]:.4f} "
-          f"(rounds {' '.join(f'{x:.3f}' for x in wall[n])}), CPU s/it {cpu[n] / (M * ROUNDS):.4f}")  # fmt: skip
+          f"(rounds {rounds}), CPU s/it {cpu[n] / (M * ROUNDS):.4f}")  # fmt: skip
