@@ -19,10 +19,11 @@ would follow alone (a test checks it).
 
 Computation: :func:`optimise` runs on the fused CPU kernels of :mod:`toy_kernels` (numba; the
 photometric loss's gradient per pixel, the smooth losses' hand-derived gradients, Adam, the
-ODM), ~6x faster than torch autograd on the losses of :mod:`reprojection`, which stay the
+ODM), ~9x faster than torch autograd on the losses of :mod:`reprojection`, which stay the
 reference (``Problem.photometric`` / ``Problem.loss`` / ``Problem.occlusions``; the kernels are
-tested against them). Each depth map is computed by one thread, so the results do not depend on
-the number of threads.
+tested against them). The work is split between threads by depth map (the photometric loss: by
+row of a scene, its grid points together), each part's sums added in a fixed order, so the
+results do not depend on the number of threads.
 
 Choices the thesis leaves open (all in constants below):
 
