@@ -52,11 +52,32 @@ def test_photometric_loss_and_gradient_equal_the_reference(problem, occluded):
     expected.sum().backward()
     state = _state(problem, depth)
     if occ is not None:
-        state.occluded[:] = torch.cat(occ, 1).numpy()
-        state.use_occ = True
+        state.set_occluded(torch.cat(occ, 1).numpy())
     got = state.photometric()
     np.testing.assert_allclose(got, expected.detach().numpy(), rtol=1e-6, atol=0)
     _assert_gradient(state.grad, d.grad)
+
+
+def test_photometric_kernel_gives_each_sample_what_it_gives_it_alone():
+    """The default grid's 35 points in one batch: the kernel's loop over grid points then runs
+    vectorised (several points at a time) and a scalar remainder, where one point alone runs
+    only the scalar form; losses and gradients must be equal bit for bit, ODM masks included."""
+    scenes = [_random_scene("horizon", 8, 24), _random_scene("flower", 9, 24)]
+    lam, kap = toy.grid(toy.StudyConfig())
+    wide = toy.Problem(scenes, lam, kap)
+    depth = _depth(wide, 10)
+    gen = torch.Generator().manual_seed(11)
+    occ = (torch.rand((depth.shape[0], len(toy.REFERENCES), 24, 24), generator=gen) < 0.2).numpy()
+    state = _state(wide, depth)
+    state.set_occluded(occ)
+    loss = state.photometric()
+    points = wide.points
+    for g in range(points):
+        rows = [g, points + g]  # grid point g of each scene
+        alone = _state(toy.Problem(scenes, lam[g : g + 1], kap[g : g + 1]), depth[rows])
+        alone.set_occluded(occ[rows])
+        assert np.array_equal(alone.photometric(), loss[rows])
+        assert np.array_equal(alone.grad, state.grad[rows])
 
 
 @pytest.mark.parametrize("smooth", list(SMOOTH_LOSSES))

@@ -175,9 +175,9 @@ def _summary(results: dict, seconds: float) -> str:
     type=int,
     default=1,
     show_default=True,
-    help="Threads of the optimiser's kernels (each depth map on one thread: the results do not "
-    "depend on it) and of torch. 1 by default: on a shared machine threads wait for each other "
-    "(measured up to 10x slower with 2 torch threads on 2 busy cores).",
+    help="Threads of the optimiser's kernels (the results do not depend on it) and of torch. 1 "
+    "by default: on a shared machine threads wait for each other (measured up to 10x slower with "
+    "2 torch threads on 2 busy cores).",
 )
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 def toy_cmd(

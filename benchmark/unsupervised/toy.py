@@ -19,10 +19,11 @@ would follow alone (a test checks it).
 
 Computation: :func:`optimise` runs on the fused CPU kernels of :mod:`toy_kernels` (numba; the
 photometric loss's gradient per pixel, the smooth losses' hand-derived gradients, Adam, the
-ODM), ~6x faster than torch autograd on the losses of :mod:`reprojection`, which stay the
+ODM), ~9x faster than torch autograd on the losses of :mod:`reprojection`, which stay the
 reference (``Problem.photometric`` / ``Problem.loss`` / ``Problem.occlusions``; the kernels are
-tested against them). Each depth map is computed by one thread, so the results do not depend on
-the number of threads.
+tested against them). The work is split between threads by depth map (the photometric loss: by
+row of a scene, its grid points together), each part's sums added in a fixed order, so the
+results do not depend on the number of threads.
 
 Choices the thesis leaves open (all in constants below):
 
@@ -460,8 +461,12 @@ class _Kernels:
         self.m, self.v = np.zeros_like(depth), np.zeros_like(depth)
         self.grad = np.zeros_like(depth)
         b, h, w = depth.shape
-        self.occluded = np.zeros((b, len(REFERENCES), h, w), dtype=np.bool_)
+        refs = len(REFERENCES)
+        self.occluded = np.zeros((b, refs, h, w), dtype=np.bool_)
         self.use_occ = False
+        self.work = _kernels().photometric_work(b, problem.points, refs, h, w)
+        self.kept = np.empty((b // problem.points, h, w, refs, problem.points), np.float32)
+        self.set_occluded(None)
         if smooth is not None:
             self.code = _kernels().SMOOTH_CODES[smooth]
             self.wf, self.wl = self.a.edge_weights(problem, smooth)
@@ -471,13 +476,21 @@ class _Kernels:
         _kernels().occlusions(self.depth, a.scene, a.rays, a.offsets, a.back_rays,
                                a.back_offsets, ODM_DEPTH_RATIO, ODM_DILATION, MAX_SQUARE,
                                self.occluded)  # fmt: skip
-        self.use_occ = True
+        self.set_occluded(self.occluded)
+
+    def set_occluded(self, occluded: np.ndarray | None) -> None:
+        """Drop the pixels of ``occluded`` ``(B, R, H, W)`` bool from the photometric loss
+        (None: keep them all)."""
+        self.use_occ = occluded is not None
+        if occluded is not None and occluded is not self.occluded:
+            self.occluded[:] = occluded
+        _kernels().kept_weights(self.occluded, self.problem.points, self.use_occ, self.kept)
 
     def photometric(self) -> np.ndarray:
         """Photometric loss ``(B,)``; its gradient in ``self.grad`` (overwritten)."""
         a = self.a
-        return _kernels().photometric(self.depth, a.scene, a.target, a.coef, a.rays, a.offsets,
-                                       self.occluded, self.use_occ, self.grad)  # fmt: skip
+        return _kernels().photometric(self.depth, self.problem.points, a.target, a.coef, a.rays,
+                                       a.offsets, self.kept, self.grad, *self.work)  # fmt: skip
 
     def step(self, t: int, lr: float) -> None:
         """Adam step ``t`` (from 1) on the gradient of the photometric + smooth loss."""

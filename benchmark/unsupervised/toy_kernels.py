@@ -17,8 +17,10 @@ implementation, torch and autograd, kept for chapter 5's networks); tests/test_t
 checks losses and gradients against it. Arrays are float32 ``(B, H, W)`` depth maps (one
 problem per sample ``b``), the frames and constants of each scene indexed by ``scene[b]``;
 intermediate sums are float64, in a fixed order. Every kernel runs its samples with ``prange``:
-a sample is computed by one thread, start to end, so results do not depend on the number of
-threads (``numba.set_num_threads``). No fastmath.
+a sample is computed by one thread, start to end (the photometric kernel: a row of a scene, all
+its grid points, the rows' partial sums added in row order), so results do not depend on the
+number of threads (``numba.set_num_threads``). No fastmath (so no reassociation: vectorised
+loops compute exactly what their scalar form does).
 """
 
 from __future__ import annotations
@@ -74,74 +76,44 @@ def bilinear_coefficients(image: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(np.stack([nw, ne - nw, sw - nw, nw - ne - sw + se], 2))
 
 
-@njit(cache=True)
-def _photometric_one(depth, target, coef, rays, offsets, occluded, use_occ, grad, tmp):  # noqa: ANN001, ANN202
-    """One sample's loss (sum over references of the masked mean L1) and its gradient in θ,
-    written to ``grad`` ``(H, W)``; ``tmp`` ``(R, H, W)`` scratch (each reference's per-pixel
-    derivative before its division by the number of kept pixels)."""
-    refs = coef.shape[0]
-    h, w = depth.shape
-    channels = CHANNELS
-    acc = np.zeros(refs)
-    count = np.zeros(refs, dtype=np.int64)
-    for i in range(h):
+@njit(parallel=True, cache=True)
+def kept_weights(occluded, points, use_occ, out):  # noqa: ANN001, ANN201
+    """:func:`photometric`'s ``kept`` ``(S, H, W, R, G)`` float32 from the ODM's ``occluded``
+    ``(B, R, H, W)`` bool (``B = S·G``, sample ``s·G + g``): 0 where occluded, else 1; all 1 if
+    not ``use_occ``. Computed once per ODM call, not per iteration."""
+    b, refs, h, w = occluded.shape
+    n = b // points
+    for job in prange(n * h):
+        s, i = job // h, job % h
         for j in range(w):
-            t = depth[i, j]
             for r in range(refs):
-                az = rays[r, 2, i, j]
-                z = offsets[r, 2] + t * az
-                inv = 1.0 / max(z, _MIN_Z)
-                x = (offsets[r, 0] + t * rays[r, 0, i, j]) * inv
-                y = (offsets[r, 1] + t * rays[r, 1, i, j]) * inv
-                ok = (x >= 0) & (x <= w - 1) & (y >= 0) & (y <= h - 1) & (z > 0) & (t > 0)
-                if not ok or (use_occ and occluded[r, i, j]):
-                    tmp[r, i, j] = 0.0
-                    continue
-                x0 = int(x)
-                y0 = int(y)
-                e = x - x0
-                f = y - y0
-                err = 0.0
-                gx = 0.0
-                gy = 0.0
-                for c in range(CHANNELS):  # a constant: the compiler unrolls the loop
-                    a0 = coef[r, y0, x0, 0, c]
-                    bx = coef[r, y0, x0, 1, c]
-                    cy = coef[r, y0, x0, 2, c]
-                    dxy = coef[r, y0, x0, 3, c]
-                    diff = a0 + bx * e + (cy + dxy * e) * f - target[i, j, c]
-                    sign = (diff > 0) - (diff < 0)
-                    err += abs(diff)
-                    gx += sign * (bx + dxy * f)
-                    gy += sign * (cy + dxy * e)
-                acc[r] += err / channels
-                count[r] += 1
-                ax = rays[r, 0, i, j] - az * x
-                ay = rays[r, 1, i, j] - az * y
-                tmp[r, i, j] = (ax * gx + ay * gy) * inv / channels
-    total = 0.0
-    for r in range(refs):
-        if count[r] > 0:
-            total += acc[r] / count[r]
-        count[r] = max(count[r], 1)
-    for i in range(h):
-        for j in range(w):
-            g = 0.0
-            for r in range(refs):
-                g += tmp[r, i, j] / count[r]
-            grad[i, j] = g
-    return total
+                for g in range(points):
+                    occ = use_occ and occluded[s * points + g, r, i, j]
+                    out[s, i, j, r, g] = 0.0 if occ else 1.0
+
+
+def photometric_work(samples: int, points: int, refs: int, h: int, w: int) -> tuple:
+    """Scratch arrays of :func:`photometric` for ``samples`` maps of ``points`` grid points."""
+    n = samples // points
+    return (
+        np.empty((n, h, w, points), dtype=np.float32),  # depth, grid point innermost
+        np.empty((n, h, w, refs, points)),  # per-pixel derivative before the means
+        np.empty((n, h, refs, points)),  # per row: sum of the kept pixels' errors
+        np.empty((n, h, refs, points)),  # per row: number of kept pixels
+    )
 
 
 @njit(parallel=True, cache=True)
-def photometric(depth, scene, target, coef, rays, offsets, occluded, use_occ, grad):  # noqa: ANN001, ANN201
+def photometric(depth, points, target, coef, rays, offsets, kept, grad, dt, tmp, accs, cnts):  # noqa: ANN001, ANN201, E501
     """L1 photometric loss per sample ``(B,)`` float64, its gradient in θ written to ``grad``.
 
-    ``depth`` ``(B, H, W)`` metres; ``scene`` ``(B,)`` int; ``target`` ``(S, H, W, C)``
-    (channel-last); ``coef`` ``(S, R, H, W, 4, C)`` the references'
-    :func:`bilinear_coefficients`; ``rays`` ``(S, R, 3, H, W)`` and ``offsets`` ``(S, R, 3)``
-    (:func:`~benchmark.unsupervised.reprojection.warp_rays`); ``occluded`` ``(B, R, H, W)``
-    bool, read only if ``use_occ``. ``grad`` ``(B, H, W)`` float32 is overwritten.
+    ``depth`` ``(B, H, W)`` metres, ``B = S·G``: scene ``s`` at grid point ``g`` is sample
+    ``s·G + g`` (``points`` = G); ``target`` ``(S, H, W, C)`` (channel-last); ``coef``
+    ``(S, R, H, W, 4, C)`` the references' :func:`bilinear_coefficients`; ``rays``
+    ``(S, R, 3, H, W)`` and ``offsets`` ``(S, R, 3)``
+    (:func:`~benchmark.unsupervised.reprojection.warp_rays`); ``kept`` ``(S, H, W, R, G)``
+    float32, 0 for the pixels the ODM drops (:func:`kept_weights`); ``dt``, ``tmp``, ``accs``,
+    ``cnts``: scratch, :func:`photometric_work`. ``grad`` ``(B, H, W)`` float32 is overwritten.
 
     As :meth:`benchmark.unsupervised.toy.Problem.photometric`: a pixel is kept where its point
     is in front of the reference and projects within the pixel centres (``inverse_warp_rays``'
@@ -149,15 +121,101 @@ def photometric(depth, scene, target, coef, rays, offsets, occluded, use_occ, gr
     bilinearly (grid_sample's, align_corners), and its derivative goes through the bilinear
     weights, ``∂x/∂θ = (a_x − a_z·x)/z``; the loss is the sum over references of the mean
     error over the kept pixels.
+
+    Layout: the G grid points of a scene share its frames and rays, so each row ``(s, i)`` is
+    one job, with the grid points innermost (contiguous, branch-free: the compiler vectorises
+    that loop, gathering the bilinear coefficients). Each row's partial sums are kept apart and
+    added in row order, so the results do not depend on the number of threads.
     """
     b, h, w = depth.shape
+    n = b // points
+    refs = coef.shape[1]
+    wm = w - 1.0
+    hm = h - 1.0
+    for job in prange(n * h):
+        s, i = job // h, job % h
+        for g in range(points):
+            for j in range(w):
+                dt[s, i, j, g] = depth[s * points + g, i, j]
+    for job in prange(n * h):
+        s, i = job // h, job % h
+        for r in range(refs):
+            for g in range(points):
+                accs[s, i, r, g] = 0.0
+                cnts[s, i, r, g] = 0.0
+        for j in range(w):
+            i0 = target[s, i, j, 0]
+            i1 = target[s, i, j, 1]
+            i2 = target[s, i, j, 2]
+            for r in range(refs):
+                rx = rays[s, r, 0, i, j]
+                ry = rays[s, r, 1, i, j]
+                rz = rays[s, r, 2, i, j]
+                ox = offsets[s, r, 0]
+                oy = offsets[s, r, 1]
+                oz = offsets[s, r, 2]
+                for g in range(points):  # no branch, no call: vectorised
+                    t = np.float64(dt[s, i, j, g])
+                    z = oz + t * rz
+                    inv = 1.0 / (z if z > _MIN_Z else _MIN_Z)
+                    x = (ox + t * rx) * inv
+                    y = (oy + t * ry) * inv
+                    ok = (x >= 0) & (x <= wm) & (y >= 0) & (y <= hm) & (z > 0) & (t > 0)
+                    keep = kept[s, i, j, r, g] * (1.0 if ok else 0.0)
+                    # the cell read where not kept is any valid one: its terms are multiplied by 0
+                    x0 = int((x if x < wm else wm) if x > 0.0 else 0.0)
+                    y0 = int((y if y < hm else hm) if y > 0.0 else 0.0)
+                    e = x - x0
+                    f = y - y0
+                    a0 = coef[s, r, y0, x0, 0, 0]
+                    b0 = coef[s, r, y0, x0, 1, 0]
+                    c0 = coef[s, r, y0, x0, 2, 0]
+                    d0 = coef[s, r, y0, x0, 3, 0]
+                    a1 = coef[s, r, y0, x0, 0, 1]
+                    b1 = coef[s, r, y0, x0, 1, 1]
+                    c1 = coef[s, r, y0, x0, 2, 1]
+                    d1 = coef[s, r, y0, x0, 3, 1]
+                    a2 = coef[s, r, y0, x0, 0, 2]
+                    b2 = coef[s, r, y0, x0, 1, 2]
+                    c2 = coef[s, r, y0, x0, 2, 2]
+                    d2 = coef[s, r, y0, x0, 3, 2]
+                    diff0 = a0 + b0 * e + (c0 + d0 * e) * f - i0
+                    diff1 = a1 + b1 * e + (c1 + d1 * e) * f - i1
+                    diff2 = a2 + b2 * e + (c2 + d2 * e) * f - i2
+                    s0 = 1.0 if diff0 > 0 else (-1.0 if diff0 < 0 else 0.0)
+                    s1 = 1.0 if diff1 > 0 else (-1.0 if diff1 < 0 else 0.0)
+                    s2 = 1.0 if diff2 > 0 else (-1.0 if diff2 < 0 else 0.0)
+                    err = abs(diff0) + abs(diff1) + abs(diff2)
+                    gx = s0 * (b0 + d0 * f) + s1 * (b1 + d1 * f) + s2 * (b2 + d2 * f)
+                    gy = s0 * (c0 + d0 * e) + s1 * (c1 + d1 * e) + s2 * (c2 + d2 * e)
+                    accs[s, i, r, g] += keep * (err / CHANNELS)
+                    cnts[s, i, r, g] += keep
+                    ax = rx - rz * x
+                    ay = ry - rz * y
+                    tmp[s, i, j, r, g] = keep * ((ax * gx + ay * gy) * inv / CHANNELS)
     out = np.zeros(b)
+    counts = np.empty((b, refs))
     for k in prange(b):
-        s = scene[k]
-        tmp = np.empty((coef.shape[1], h, w))
-        out[k] = _photometric_one(
-            depth[k], target[s], coef[s], rays[s], offsets[s], occluded[k], use_occ, grad[k], tmp
-        )
+        s, g = k // points, k % points
+        total = 0.0
+        for r in range(refs):
+            acc = 0.0
+            count = 0.0
+            for i in range(h):
+                acc += accs[s, i, r, g]
+                count += cnts[s, i, r, g]
+            if count > 0:
+                total += acc / count
+            counts[k, r] = max(count, 1.0)
+        out[k] = total
+    for job in prange(n * h):
+        s, i = job // h, job % h
+        for g in range(points):
+            for j in range(w):
+                v = 0.0
+                for r in range(refs):
+                    v += tmp[s, i, j, r, g] / counts[s * points + g, r]
+                grad[s * points + g, i, j] = v
     return out
 
 
