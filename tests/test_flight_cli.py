@@ -147,7 +147,10 @@ def depth_ckpt(tmp_path_factory):
         (("--depth", "oracle", "--threads", "-1"), ("--threads",)),
         (("--depth", "oracle", "--device", "tpu"), ("--device",)),
         (("--depth", "{ckpt}"), ("--renderer analytic",)),
-        (("--depth", "{text}", "--renderer", "blender"), ("--depth",)),
+        # the checkpoint is read after the check for bpy (the gen extra's error comes first)
+        pytest.param(
+            ("--depth", "{text}", "--renderer", "blender"), ("--depth",), marks=pytest.mark.blender
+        ),
     ],
 )
 def test_bad_input_is_one_line_before_anything_is_written(tmp_path, depth_ckpt, args, words):
