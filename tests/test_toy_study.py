@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import shutil
 from pathlib import Path
 
 import click
@@ -202,6 +203,37 @@ def test_saved_runs_read_back_exactly_and_a_resumed_study_is_the_uninterrupted_o
                 )
     toy_runs.remove(tmp_path)
     assert not toy_runs.folder(tmp_path).exists() and toy_runs.finished(tmp_path) == []
+
+
+def test_halves_run_apart_combine_into_the_whole_study(tmp_path):
+    """Two studies of half the losses each, in two folders (two processes, one per core): their
+    run files copied into one folder and resumed with every loss give the whole study's
+    results, computing nothing; the CLI takes only the runs the resumed study asks for."""
+    from benchmark.cli.unsupervised import _check_resume
+
+    scenes, cfg = _tiny_study()
+    whole, _ = toy.run_study(scenes, cfg)
+    for loss in cfg.losses:
+        half = dataclasses.replace(cfg, losses=(loss,))
+        settings = toy_runs.settings(half, scenes)
+        toy_runs.start(tmp_path / loss, settings)
+        toy.run_study(scenes, half, on_done=lambda k, blk, b, o=tmp_path / loss, st=settings:
+                      toy_runs.save(o, k, blk, b, st))  # fmt: skip
+    combined = tmp_path / "whole"
+    shutil.copytree(toy_runs.folder(tmp_path / "tv"), toy_runs.folder(combined))
+    for f in toy_runs.folder(tmp_path / "diffusion").glob("diffusion.*.npz"):
+        shutil.copy(f, toy_runs.folder(combined))
+    settings = toy_runs.settings(cfg, scenes)
+    assert toy_runs.difference(toy_runs.read_settings(combined), settings) is None
+    keys = _check_resume(combined, settings, resume=True)
+    assert len(keys) == 5
+    done = {k: toy_runs.load(combined, k, settings) for k in keys}
+    computed = []
+    resumed, _ = toy.run_study(scenes, cfg, on_run=computed.append, done=done)
+    assert computed == [] and json.dumps(_untimed(resumed)) == json.dumps(_untimed(whole))
+    tv_only = toy_runs.settings(dataclasses.replace(cfg, losses=("tv",)), scenes)
+    assert sorted(_check_resume(combined, tv_only, resume=True)) == [
+        "photometric", "tv/odm-off", "tv/odm-on"]  # fmt: skip
 
 
 def test_resume_settings_name_what_changed_and_bad_run_files_are_one_line_errors(tmp_path):

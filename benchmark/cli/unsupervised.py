@@ -281,7 +281,10 @@ def _check_resume(out: Path, settings: dict, resume: bool) -> list[str]:
     changed = toy_runs.difference(saved, settings)
     if changed:
         raise UserError(f"--resume: '{out}' holds a study of other settings ({changed})")
-    return keys
+    wanted = {"photometric"} | {
+        study.run_key(loss, odm) for loss in settings["losses"] for odm in settings["odm"]
+    }
+    return [k for k in keys if k in wanted]
 
 
 def _load_or_start(

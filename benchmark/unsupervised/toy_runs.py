@@ -32,6 +32,10 @@ from .toy import BestRun, StudyConfig, ToyScene
 
 FOLDER = "toy-runs"
 STUDY_JSON = "study.json"
+#: Settings that choose which runs a study holds, not what a run computes: a study resumed with
+#: other losses or ODM settings takes the finished runs it asks for, so halves of a study run
+#: in parallel (one process per core, ``--losses`` split) combine by copying their run files
+SELECTION = ("losses", "odm")
 
 
 def folder(out: Path) -> Path:
@@ -85,10 +89,15 @@ def read_settings(out: Path) -> dict | None:
     return saved
 
 
+def shared(study: dict) -> dict:
+    """``study``'s settings but :data:`SELECTION`: what every run of the study shares."""
+    return {k: v for k, v in study.items() if k not in SELECTION}
+
+
 def difference(saved: dict, requested: dict) -> str | None:
     """The first setting where ``saved`` differs from ``requested`` in words ("iterations 20,
-    now 30"; "other flower data"), or None when they match."""
-    for key, value in requested.items():
+    now 30"; "other flower data"), or None when they match (:data:`SELECTION` aside)."""
+    for key, value in shared(requested).items():
         was = saved.get(key)
         if was == value:
             continue
@@ -154,7 +163,7 @@ def load(out: Path, key: str, study: dict) -> tuple[dict, BestRun]:
     try:
         with np.load(path, allow_pickle=False) as z:
             a = {k: z[k] for k in z.files}
-        if json.loads(str(a["study"])) != study:
+        if shared(json.loads(str(a["study"]))) != shared(study):
             raise ValueError("run with other settings than study.json")
         names = [str(n) for n in a["scenes"]]
         occluded: dict[str, list[torch.Tensor] | None] = {}
