@@ -4,7 +4,9 @@ For each resolution and render configuration it times a complete ``generate`` ru
 rendering, writing, indexing) into a temporary folder, then re-renders a few of those frames with
 ``REFERENCE_SAMPLES`` samples (same shading, no denoiser) and reports the PSNR of the generated
 8-bit sRGB frames against them. Speed ratios are taken against the ``plain`` configuration, which
-is measured in the same invocation.
+is measured in the same invocation. A fixed CPU workload (:func:`reference_loop`) is timed before
+and after the whole benchmark, so that tables measured in different machine states (a VM's
+drifting speed, other jobs) can be compared.
 """
 
 from __future__ import annotations
@@ -29,6 +31,14 @@ REFERENCE_SAMPLES = 256
 # The issue's baseline: path-traced Principled BSDF, 8 samples, 1 bounce, no denoiser, and each
 # frame rendered as an independent still (no persistent scene data).
 PLAIN = {"shading": "path", "samples": 8, "denoise": False, "max_bounces": 1, "persistent": False}
+#: The reference loop (:func:`reference_loop`): pure-Python steps of a linear congruential
+#: generator, then sorts of numpy integers; timed as the best of REFERENCE_REPEATS runs.
+REFERENCE_PYTHON_STEPS = 3_000_000
+REFERENCE_ARRAY_SIZE = 1 << 20
+REFERENCE_SORTS = 4
+REFERENCE_REPEATS = 3
+#: The generator's multiplier, increment and modulus mask (the ANSI C rand's, modulus 2^31).
+LCG = (1103515245, 12345, 0x7FFFFFFF)
 
 
 def configurations(names: list[str]) -> dict[str, dict]:
@@ -55,12 +65,56 @@ class BenchRow:
     fps: float
     psnr_db: float
     speedup: float = float("nan")  # frames/s relative to "plain" at the same resolution
+    reference_before_s: float = float("nan")  # reference_seconds() before the whole benchmark
+    reference_after_s: float = float("nan")  # and after it (the same in every row)
 
 
 def psnr(a: np.ndarray, b: np.ndarray) -> float:
     """PSNR in dB of two uint8 images (peak 255); inf when identical."""
     mse = np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2)
     return float("inf") if mse == 0 else float(10 * np.log10(255.0**2 / mse))
+
+
+def reference_loop(
+    steps: int = REFERENCE_PYTHON_STEPS,
+    size: int = REFERENCE_ARRAY_SIZE,
+    sorts: int = REFERENCE_SORTS,
+) -> int:
+    """A fixed CPU workload, single-threaded, exact integer arithmetic (the same result on every
+    machine): ``steps`` steps of the :data:`LCG` x -> (a·x + c) mod 2^31 from x = 1 in pure
+    Python, summing x >> 16 (the interpreter's speed); then ``sorts`` times, every element of
+    ``size`` int64 values (numpy's PCG64 from seed 0, in [0, 2^31)) through one LCG step and
+    the array sorted (numpy's vectorised arithmetic and sort). Returns the Python sum plus the
+    sum of the final array (a checksum)."""
+    a, c, mask = LCG
+    x, total = 1, 0
+    for _ in range(steps):
+        x = (a * x + c) & mask
+        total += x >> 16
+    values = np.random.default_rng(0).integers(0, mask + 1, size, dtype=np.int64)
+    for _ in range(sorts):
+        values = np.sort((values * a + c) & mask)
+    return total + int(values.sum())
+
+
+def reference_seconds(repeats: int = REFERENCE_REPEATS) -> float:
+    """Wall time of :func:`reference_loop`, seconds, the best of ``repeats`` runs
+    (time.perf_counter)."""
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        reference_loop()
+        times.append(time.perf_counter() - t0)
+    return min(times)
+
+
+def reference_line(rows: list[BenchRow]) -> str:
+    """The line printed below the table: the reference loop's times of ``rows``."""
+    r = rows[0]
+    return (
+        f"reference loop: {r.reference_before_s:.2f} s before, {r.reference_after_s:.2f} s "
+        f"after (best of {REFERENCE_REPEATS}; stillbox_gen.bench.reference_loop)"
+    )
 
 
 def reference_psnr(
@@ -105,7 +159,9 @@ def run_bench(
     device: str = config.CPU_DEVICE,
 ) -> list[BenchRow]:
     """Measure every (resolution, configuration) on the Cycles ``device`` (workers.choose_device);
-    ``resolutions`` holds (pixels, scenes) pairs."""
+    ``resolutions`` holds (pixels, scenes) pairs. Every row also holds the reference loop's
+    time before and after the whole measurement (:func:`reference_seconds`)."""
+    before = reference_seconds()
     rows = []
     for res, scenes in resolutions:
         for name, render in configurations(names).items():
@@ -141,6 +197,9 @@ def run_bench(
         for r in rows:
             if r.res == res and base:
                 r.speedup = r.fps / base
+    after = reference_seconds()
+    for r in rows:
+        r.reference_before_s, r.reference_after_s = round(before, 3), round(after, 3)
     return rows
 
 

@@ -540,6 +540,8 @@ def bench(
     with tempfile.TemporaryDirectory(prefix="stillbox-bench-") as tmp:
         rows = b.run_bench(pairs, names, workers, psnr_scenes, Path(tmp), click.echo, device)
     click.echo(b.markdown_table(rows))
+    if rows:
+        click.echo(b.reference_line(rows))
     if csv_path:
         b.write_csv(rows, csv_path)
         click.echo(f"wrote {csv_path}", err=True)

@@ -1,23 +1,28 @@
 """The toy-problem study (benchmark.unsupervised.toy and its command; thesis §4.6, Table 4.1).
 
-Fast tests check the metrics, ΔM and the table on hand-made numbers and the command's one-line
-errors; the render tests render both toy presets at 64 px (about 3 s each) and run the study
-on them: `--quick` end to end, the photometric loss at the true depth, and that a grid point
-optimised in the batch follows the trajectory it follows alone."""
+Fast tests check the metrics, ΔM and the table on hand-made numbers, the command's one-line
+errors and the saved runs of --resume (read back exactly; a study resumed after an interruption
+gives the uninterrupted one's results); the render tests render both toy presets at 64 px (about
+3 s each) and run the study on them: `--quick` end to end (and interrupted, then resumed), the
+photometric loss at the true depth, and that a grid point optimised in the batch follows the
+trajectory it follows alone."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
+import shutil
 from pathlib import Path
 
+import click
 import numpy as np
 import pytest
 import torch
 from conftest import run_cli
 
 from benchmark.cli.options import UserError
-from benchmark.cli.unsupervised import RESULTS_JSON, TABLE_MD, toy_cmd
-from benchmark.unsupervised import toy
+from benchmark.cli.unsupervised import DEPTHS_NPZ, RESULTS_JSON, TABLE_MD, toy_cmd
+from benchmark.unsupervised import toy, toy_runs
 from benchmark.unsupervised.reprojection import SMOOTH_LOSSES, inverse_warp, photometric_loss
 
 RES = 64  # the presets' 200 px rendered small
@@ -122,6 +127,141 @@ def test_batched_photometric_loss_is_the_per_reference_one():
         torch.testing.assert_close(d.grad / scale, d2.grad / scale, rtol=0, atol=1e-5)
 
 
+# ---------------------------------------------------------------- --resume (fast)
+
+#: results.json entries that are times (they differ between any two studies)
+TIMINGS = ("seconds", "cpu_seconds", "seconds_per_iteration")
+
+
+def _untimed(results: dict) -> dict:
+    """results.json without its timings."""
+    if isinstance(results, dict):
+        return {k: _untimed(v) for k, v in results.items() if k not in TIMINGS}
+    return results
+
+
+def _tiny_study() -> tuple[list[toy.ToyScene], toy.StudyConfig]:
+    scenes = [_random_scene("horizon", 0, 16), _random_scene("flower", 1, 16)]
+    cfg = toy.StudyConfig(iterations=4, lambdas=(1.0, 30.0), kappas=(0.3,), odm_every=2,
+                          losses=("tv", "diffusion"))  # fmt: skip
+    return scenes, cfg
+
+
+class Interrupt(Exception):
+    pass
+
+
+def test_saved_runs_read_back_exactly_and_a_resumed_study_is_the_uninterrupted_one(tmp_path):
+    """run_study interrupted at the start of its 4th run (of 5), its 3 finished runs saved by
+    toy_runs and read back, then resumed: the same results (timings apart) and BestRuns, bit
+    for bit, and only the missing runs computed."""
+    scenes, cfg = _tiny_study()
+    whole, whole_best = toy.run_study(scenes, cfg)
+    settings = toy_runs.settings(cfg, scenes)
+    toy_runs.start(tmp_path, settings)
+    started = []
+
+    def on_run(key: str) -> None:
+        if len(started) == 3:
+            raise Interrupt
+        started.append(key)
+
+    def save(key, block, best):
+        toy_runs.save(tmp_path, key, block, best, settings)
+
+    with pytest.raises(Interrupt):
+        toy.run_study(scenes, cfg, on_run=on_run, on_done=save)
+    keys = toy_runs.finished(tmp_path)
+    assert started == ["photometric", "tv/odm-off", "tv/odm-on"] and keys == sorted(started)
+    assert toy_runs.read_settings(tmp_path) == settings
+    done = {k: toy_runs.load(tmp_path, k, settings) for k in keys}
+    for key, (block, best) in done.items():
+        expected = whole["photometric"] if key == "photometric" else whole["runs"][key]
+        assert _untimed(block) == _untimed(expected) and block["seconds"] >= 0
+        assert best.label == key and best.history_iterations == [0, 1, 2, 3, 4]
+        for n in toy.SCENES:
+            assert best.depth[n].dtype == torch.float32 and best.depth[n].shape == (1, 1, 16, 16)
+    assert done["tv/odm-off"][1].occluded["flower"] is None
+    masks = done["tv/odm-on"][1].occluded["flower"]
+    assert len(masks) == 2 and masks[0].dtype == torch.bool and masks[0].shape == (1, 1, 16, 16)
+    rest = []
+    resumed, resumed_best = toy.run_study(scenes, cfg, on_run=rest.append, done=done)
+    assert rest == ["diffusion/odm-off", "diffusion/odm-on"]
+    assert json.dumps(_untimed(resumed)) == json.dumps(_untimed(whole))
+    for key, b in whole_best.items():
+        r = resumed_best[key]
+        for n in toy.SCENES:
+            assert torch.equal(r.depth[n], b.depth[n]) and np.array_equal(
+                r.history[n], b.history[n]
+            )
+            assert r.history[n].dtype == b.history[n].dtype
+            if b.occluded[n] is None:
+                assert r.occluded[n] is None
+            else:
+                assert all(
+                    torch.equal(x, y) for x, y in zip(r.occluded[n], b.occluded[n], strict=True)
+                )
+    toy_runs.remove(tmp_path)
+    assert not toy_runs.folder(tmp_path).exists() and toy_runs.finished(tmp_path) == []
+
+
+def test_halves_run_apart_combine_into_the_whole_study(tmp_path):
+    """Two studies of half the losses each, in two folders (two processes, one per core): their
+    run files copied into one folder and resumed with every loss give the whole study's
+    results, computing nothing; the CLI takes only the runs the resumed study asks for."""
+    from benchmark.cli.unsupervised import _check_resume
+
+    scenes, cfg = _tiny_study()
+    whole, _ = toy.run_study(scenes, cfg)
+    for loss in cfg.losses:
+        half = dataclasses.replace(cfg, losses=(loss,))
+        settings = toy_runs.settings(half, scenes)
+        toy_runs.start(tmp_path / loss, settings)
+        toy.run_study(scenes, half, on_done=lambda k, blk, b, o=tmp_path / loss, st=settings:
+                      toy_runs.save(o, k, blk, b, st))  # fmt: skip
+    combined = tmp_path / "whole"
+    shutil.copytree(toy_runs.folder(tmp_path / "tv"), toy_runs.folder(combined))
+    for f in toy_runs.folder(tmp_path / "diffusion").glob("diffusion.*.npz"):
+        shutil.copy(f, toy_runs.folder(combined))
+    settings = toy_runs.settings(cfg, scenes)
+    assert toy_runs.difference(toy_runs.read_settings(combined), settings) is None
+    keys = _check_resume(combined, settings, resume=True)
+    assert len(keys) == 5
+    done = {k: toy_runs.load(combined, k, settings) for k in keys}
+    computed = []
+    resumed, _ = toy.run_study(scenes, cfg, on_run=computed.append, done=done)
+    assert computed == [] and json.dumps(_untimed(resumed)) == json.dumps(_untimed(whole))
+    tv_only = toy_runs.settings(dataclasses.replace(cfg, losses=("tv",)), scenes)
+    assert sorted(_check_resume(combined, tv_only, resume=True)) == [
+        "photometric", "tv/odm-off", "tv/odm-on"]  # fmt: skip
+
+
+def test_resume_settings_name_what_changed_and_bad_run_files_are_one_line_errors(tmp_path):
+    scenes, cfg = _tiny_study()
+    settings = toy_runs.settings(cfg, scenes)
+    assert toy_runs.difference(settings, json.loads(json.dumps(settings))) is None
+    other = toy_runs.settings(dataclasses.replace(cfg, iterations=5), scenes)
+    assert toy_runs.difference(settings, other) == "iterations 4, now 5"
+    changed = [scenes[0], _random_scene("flower", 2, 16)]
+    assert toy_runs.difference(settings, toy_runs.settings(cfg, changed)) == "other flower data"
+    toy_runs.start(tmp_path, settings)
+    best = toy.BestRun("photometric", {"flower": torch.ones(1, 1, 2, 2)}, {"flower": None},
+                       {"flower": np.zeros(3, np.float32)}, [0, 1, 2])  # fmt: skip
+    toy_runs.save(tmp_path, "photometric", {"m": 0.5}, best, settings)
+    with pytest.raises(ValueError, match=r"photometric\.npz' is not a readable toy run \(run "
+                       "with other settings"):  # fmt: skip
+        toy_runs.load(tmp_path, "photometric", other)
+    path = toy_runs.run_path(tmp_path, "photometric")
+    path.write_bytes(path.read_bytes()[:100])
+    with pytest.raises(
+        ValueError, match=r"^'.*photometric\.npz' is not a readable toy run \(.*\); remove it$"
+    ):
+        toy_runs.load(tmp_path, "photometric", settings)
+    (toy_runs.folder(tmp_path) / toy_runs.STUDY_JSON).write_text("{")
+    with pytest.raises(ValueError, match="study.json' is not a readable toy study"):
+        toy_runs.read_settings(tmp_path)
+
+
 def test_missing_dataset_names_the_option_and_the_command_that_renders_it(tmp_path):
     out = tmp_path / "out"
     with pytest.raises(UserError) as e:
@@ -176,11 +316,19 @@ def scenes(toy_data) -> list[toy.ToyScene]:
     return [toy.load_scene(toy_data[n], n) for n in toy.SCENES]
 
 
-@pytest.mark.render
-def test_quick_study_end_to_end(toy_data, tmp_path):
-    out = tmp_path / "study"
+@pytest.fixture(scope="module")
+def quick_study(toy_data, tmp_path_factory) -> Path:
+    """The output folder of an uninterrupted `--quick` study."""
+    out = tmp_path_factory.mktemp("quick") / "study"
     _invoke("--flower", toy_data["flower"], "--horizon", toy_data["horizon"], "--out", out,
             "--quick", "--quiet")  # fmt: skip
+    return out
+
+
+@pytest.mark.render
+def test_quick_study_end_to_end(quick_study):
+    out = quick_study
+    assert not toy_runs.folder(out).exists()  # the saved runs are gone once the study ends
     results = json.loads((out / RESULTS_JSON).read_text())
     assert results["iterations"] == toy.QUICK_ITERATIONS
     assert results["learning_rate"] == 0.15 and results["start_depth_m"] == 10.0
@@ -207,6 +355,50 @@ def test_quick_study_end_to_end(toy_data, tmp_path):
         assert (out / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", png
     depths = np.load(out / "depths.npz")
     assert depths["diffusion/odm-on/flower"].shape == (RES, RES)
+
+
+@pytest.mark.render
+def test_an_interrupted_study_resumed_writes_the_uninterrupted_outputs(
+    toy_data, quick_study, tmp_path, monkeypatch
+):
+    """Ctrl-C in the 3rd run of a `--quick` study keeps its first 2 runs; a new study in that
+    folder is refused unless --resume (of the same settings) continues it; the resumed study's
+    results.json (timings apart), table.md, depths.npz and figures are the uninterrupted ones."""
+    out = tmp_path / "study"
+    data = ("--flower", toy_data["flower"], "--horizon", toy_data["horizon"], "--out", out)
+    with pytest.raises(UserError, match="^--resume: '.*' holds no unfinished toy study$"):
+        _invoke(*data, "--quick", "--quiet", "--resume")
+    optimise, calls = toy.optimise, []
+
+    def interrupted(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        return optimise(*args, **kwargs)
+
+    monkeypatch.setattr(toy, "optimise", interrupted)
+    with pytest.raises(click.exceptions.Abort):  # what click makes of Ctrl-C
+        _invoke(*data, "--quick", "--quiet")
+    monkeypatch.undo()
+    assert toy_runs.finished(out) == ["photometric", "tv/odm-off"]
+    assert not (out / RESULTS_JSON).exists()
+    with pytest.raises(UserError, match="^--out: .* unfinished toy study .*add --resume"):
+        _invoke(*data, "--quick", "--quiet")
+    with pytest.raises(UserError, match=r"^--resume: .* other settings \(iterations 20, now 21\)$"):
+        _invoke(*data, "--quick", "--quiet", "--resume", "--iterations", 21)
+    _invoke(*data, "--quick", "--quiet", "--resume")
+    assert not toy_runs.folder(out).exists()
+    whole = json.loads((quick_study / RESULTS_JSON).read_text())
+    resumed = json.loads((out / RESULTS_JSON).read_text())
+    assert json.dumps(_untimed(resumed)) == json.dumps(_untimed(whole))
+    assert resumed["runs"]["diffusion/odm-on"]["seconds"] > 0
+    with np.load(quick_study / DEPTHS_NPZ) as a, np.load(out / DEPTHS_NPZ) as b:
+        assert a.files == b.files and all(np.array_equal(a[k], b[k]) for k in a.files)
+    names = sorted(p.name for p in quick_study.iterdir())
+    assert names == sorted(p.name for p in out.iterdir())
+    for name in names:  # table.md and the figures, byte for byte
+        if name not in (RESULTS_JSON, DEPTHS_NPZ):
+            assert (out / name).read_bytes() == (quick_study / name).read_bytes(), name
 
 
 @pytest.mark.render

@@ -1,6 +1,7 @@
 """``stillbox-bench toy``: the toy-problem study of thesis §4.6 (Table 4.1, Figs. 4.13-4.18),
 :mod:`benchmark.unsupervised.toy` run from one command, writing results.json, table.md and the
-figures. User mistakes raise
+figures; ``--resume`` goes on from the last finished run of an interrupted study
+(:mod:`benchmark.unsupervised.toy_runs`). User mistakes raise
 ``UserError`` (exit code 2), which ``stillbox-bench`` prints as one line.
 """
 
@@ -19,7 +20,7 @@ from stillbox_gen.formats import atomic_write_text
 
 from ..core import runfolder
 from ..unsupervised import toy as study
-from ..unsupervised import toy_plots
+from ..unsupervised import toy_plots, toy_runs
 from ..unsupervised.reprojection import SMOOTH_LOSSES
 from .options import DEVICE_OPTION, UserError, torch_device, user_error
 
@@ -179,6 +180,12 @@ def _summary(results: dict, seconds: float) -> str:
     "by default: on a shared machine threads wait for each other (measured up to 10x slower with "
     "2 torch threads on 2 busy cores).",
 )
+@click.option(
+    "--resume",
+    is_flag=True,
+    help=f"Continue the unfinished study in --out (its finished runs are kept in "
+    f"--out/{toy_runs.FOLDER}/ until the study ends) with the same settings and data.",
+)
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 def toy_cmd(
     flower: Path,
@@ -192,6 +199,7 @@ def toy_cmd(
     quick: bool,
     device: str,
     threads: int,
+    resume: bool,
     quiet: bool,
 ) -> None:
     """Toy problems (thesis §4.6, Table 4.1): optimise the centre frame's depth of Flower and
@@ -219,20 +227,74 @@ def toy_cmd(
     cfg.kappas = _grid_option("--kappas", kappas) or cfg.kappas
     cfg.losses = _losses_option(losses) or cfg.losses
     scenes = [_load("--horizon", horizon, "horizon"), _load("--flower", flower, "flower")]
+    settings = toy_runs.settings(cfg, scenes)
+    keys = _check_resume(out, settings, resume)
     try:
         out = runfolder.make_folder(out)
     except ValueError as e:
         raise user_error(e) from None
+    done = _load_or_start(out, settings, keys, resume)
     torch.set_num_threads(threads)
     toy_kernels.set_threads(threads)
-    bar = tqdm(total=cfg.runs * cfg.iterations, unit="it", disable=quiet, dynamic_ncols=True)
+    bar = tqdm(total=cfg.runs * cfg.iterations, initial=len(done) * cfg.iterations, unit="it",
+               disable=quiet, dynamic_ncols=True)  # fmt: skip
     t0 = time.perf_counter()
     with bar:
         results, best = study.run_study(
-            [s.to(dev) for s in scenes], cfg, on_run=bar.set_description, on_step=bar.update
+            [s.to(dev) for s in scenes],
+            cfg,
+            on_run=bar.set_description,
+            on_step=bar.update,
+            done=done,
+            on_done=lambda key, block, b: toy_runs.save(out, key, block, b, settings),
         )
-    seconds = time.perf_counter() - t0
+    # a resumed study's time: this command's wall time and the resumed runs' own
+    earlier = sum(block["seconds"] for block, _ in done.values())
+    seconds = time.perf_counter() - t0 + earlier
     results["seconds"] = round(seconds, 1)
     results["device"] = str(dev)
     write_outputs(out, results, best, scenes)
-    click.echo(f"{_summary(results, seconds)}; results in {out}")
+    toy_runs.remove(out)
+    resumed = f" ({len(done)} of them resumed)" if done else ""
+    click.echo(f"{_summary(results, seconds)}{resumed}; results in {out}")
+
+
+def _check_resume(out: Path, settings: dict, resume: bool) -> list[str]:
+    """Keys of the runs an unfinished study left in ``out``, to take as they are with
+    ``--resume`` (same settings and data, else a one-line error). Without --resume a study
+    starts anew, but finished runs of an unfinished one are refused (the error names
+    --resume), not discarded."""
+    try:
+        saved = toy_runs.read_settings(out)
+    except ValueError as e:
+        raise UserError(f"--out: {e}") from None
+    keys = toy_runs.finished(out)
+    if not resume:
+        if saved is not None and keys:
+            raise UserError(
+                f"--out: '{out}' holds an unfinished toy study ({len(keys)} finished runs); "
+                f"add --resume to continue it, or remove {toy_runs.folder(out)}"
+            )
+        return []
+    if saved is None:
+        raise UserError(f"--resume: '{out}' holds no unfinished toy study")
+    changed = toy_runs.difference(saved, settings)
+    if changed:
+        raise UserError(f"--resume: '{out}' holds a study of other settings ({changed})")
+    wanted = {"photometric"} | {
+        study.run_key(loss, odm) for loss in settings["losses"] for odm in settings["odm"]
+    }
+    return [k for k in keys if k in wanted]
+
+
+def _load_or_start(
+    out: Path, settings: dict, keys: list[str], resume: bool
+) -> dict[str, study.Finished]:
+    """The finished runs ``keys`` read back (--resume), or a new study's settings written."""
+    try:
+        if resume:
+            return {k: toy_runs.load(out, k, settings) for k in keys}
+        toy_runs.start(out, settings)
+        return {}
+    except (ValueError, OSError) as e:
+        raise UserError(f"--out: {e}") from None

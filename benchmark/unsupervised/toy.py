@@ -49,6 +49,7 @@ import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -689,16 +690,43 @@ def run_key(loss: str, odm: bool) -> str:
     return f"{loss}/odm-{'on' if odm else 'off'}"
 
 
+#: A finished run: its results.json block and its BestRun.
+Finished = tuple[dict, BestRun]
+
+
+def _photometric_run(
+    scenes: list[ToyScene], le0: dict[str, float], cfg: StudyConfig, on_step
+) -> Finished:
+    device = scenes[0].frames.device
+    alone = Problem(scenes, torch.zeros(1, device=device), torch.zeros(1, device=device))
+    run = optimise(alone, None, cfg.iterations, on_step=on_step)
+    return summarise(run, scenes, le0, None), _best_run("photometric", run, scenes, 0)
+
+
+def _grid_run(
+    problem: Problem, loss: str, odm: bool, le0: dict[str, float], cfg: StudyConfig, on_step
+) -> Finished:
+    every = cfg.odm_every if odm else 0
+    run = optimise(problem, loss, cfg.iterations, every, on_step=on_step)
+    block = summarise(run, problem.scenes, le0, cfg)
+    return block, _best_run(run_key(loss, odm), run, problem.scenes, block["best"]["index"])
+
+
 def run_study(
     scenes: Sequence[ToyScene],
     cfg: StudyConfig,
     on_run: Callable[[str], None] | None = None,
     on_step: Callable[[], None] | None = None,
+    done: dict[str, Finished] | None = None,
+    on_done: Callable[[str, dict, BestRun], None] | None = None,
 ) -> tuple[dict, dict[str, BestRun]]:
     """The study: photometric loss alone, then every loss of ``cfg`` × ODM setting over the
     (λ, κ) grid, each one batch. Returns results.json's dict and each run's :class:`BestRun`
-    (key ``"photometric"`` or :func:`run_key`). ``on_run(key)`` is called before each run."""
+    (key ``"photometric"`` or :func:`run_key`). ``on_run(key)`` is called before each run
+    computed here, ``on_done(key, block, best)`` after it (to save it: :mod:`toy_runs`);
+    ``done`` holds runs finished earlier by key, taken as they are instead of run again."""
     scenes = list(scenes)
+    done = done or {}
     le0 = initial_log_errors(scenes)
     results: dict = {
         "scenes": [s.name for s in scenes],
@@ -714,25 +742,28 @@ def run_study(
         "runs": {},
     }
     best: dict[str, BestRun] = {}
-    if on_run is not None:
-        on_run("photometric")
-    device = scenes[0].frames.device
-    alone = Problem(scenes, torch.zeros(1, device=device), torch.zeros(1, device=device))
-    run = optimise(alone, None, cfg.iterations, on_step=on_step)
-    results["photometric"] = summarise(run, scenes, le0, None)
-    best["photometric"] = _best_run("photometric", run, scenes, 0)
+
+    def one(key: str, run: Callable[[], Finished]) -> Finished:
+        if key in done:
+            return done[key]
+        if on_run is not None:
+            on_run(key)
+        block, b = run()
+        if on_done is not None:
+            on_done(key, block, b)
+        return block, b
+
+    results["photometric"], best["photometric"] = one(
+        "photometric", partial(_photometric_run, scenes, le0, cfg, on_step)
+    )
     lam, kap = grid(cfg)
+    device = scenes[0].frames.device
     problem = Problem(scenes, lam.to(device), kap.to(device))
     for loss in cfg.losses:
         for odm in cfg.odm:
             key = run_key(loss, odm)
-            if on_run is not None:
-                on_run(key)
-            every = cfg.odm_every if odm else 0
-            run = optimise(problem, loss, cfg.iterations, every, on_step=on_step)
-            block = summarise(run, scenes, le0, cfg)
-            results["runs"][key] = block
-            best[key] = _best_run(key, run, scenes, block["best"]["index"])
+            run = partial(_grid_run, problem, loss, odm, le0, cfg, on_step)
+            results["runs"][key], best[key] = one(key, run)
     return results, best
 
 
