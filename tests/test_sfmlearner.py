@@ -240,6 +240,11 @@ def test_run_sfmlearner_tiny_reports_both_scales(tiny_dataset, tmp_path):
           "--out", tmp_path / "ev")  # fmt: skip
     again = json.loads((tmp_path / "ev" / "summary.json").read_text())["metrics"]
     assert again["mae"] == pytest.approx(m["mae"]) and again["gt_mae"] == pytest.approx(m["gt_mae"])
+    # infer has no PoseNet sequence to scale it by: refused in one line, nothing written
+    inf = ["infer", "--ckpt", out / "checkpoints" / "best.pt", "--input", tiny_dataset]
+    inf += ["--speed", 9, "--fps", 30, "--out", tmp_path / "inf"]
+    _one_line(bench(*inf, check=False), "scale-free-depth")
+    assert not (tmp_path / "inf").exists()
     no = ["run", "sfmlearner-tiny", "--data", tiny_dataset, "--out", tmp_path / "no", "--quiet"]
     _one_line(bench(*no, "--shift", 5, check=False), "--shift")
     assert not (tmp_path / "no").exists()

@@ -521,7 +521,7 @@ class Trainer:
                 self.tb.add_scalar(f"epoch/{k}", v, st["global_step"])
             epe = f", EPE {val['epe']:.3f} px" if "epe" in val else ""
             if "gt_mae" in val:  # scale-free depth: MAE above with PoseNet's scale ("P")
-                epe += f"; with the GT median scale: MAE {val['gt_mae']:.3f} m"
+                epe += f" (P scale; GT median scale: MAE {val['gt_mae']:.3f} m)"
             self.log(
                 f"step {st['global_step']}: train loss {train_loss:.3f}, val MAE "
                 f"{val['mae']:.3f} m, MRE {val['mre']:.3f}, MLE {val['mle']:.3f}{epe}"
