@@ -111,9 +111,11 @@ def test_registry():
             continue
         r = spec.recipe  # depth networks are trained like DepthNet (thesis Table 3.5),
         # flow networks with the public FlowNetS optimiser (Adam, lr 1e-4), same batch and epochs
-        if spec.kind is UNSUPERVISED:  # thesis 5.4.2: Adam, lr 2e-4; eq. 5.5's weights 1/2^s
+        if spec.kind.target is Target.VIDEO:  # thesis 5.4.2: Adam, lr 2e-4; eq. 5.5's 1/2^s
             assert (r.optimizer, r.lr, r.momentum, r.beta2) == ("adam", 2e-4, 0.9, 0.999)
-            assert r.loss_weights == (1, 0.5, 0.25, 0.125, 0.0625) and r.sequence_length == 5
+            scales = 5 if spec.kind is UNSUPERVISED else 4  # DepthNet's, DispNet's (sfmlearner)
+            assert r.loss_weights == (1, 0.5, 0.25, 0.125, 0.0625)[:scales]
+            assert r.sequence_length == 5
             continue
         lr = 1e-4 if spec.kind is FLOW else 1e-2
         assert r.lr == lr and r.batch_size == 256 and r.epochs == 55
@@ -133,7 +135,7 @@ def test_kinds_say_how_a_method_trains_and_is_scored():
     """The registry's kinds: which train, on what target, and which metric picks best.pt."""
     kinds = {spec.name: spec.kind for spec in MODELS.values()}
     assert {k.name for k in KINDS} == {
-        *("depth", "flow", "unsupervised-depth", "oracle-flow", "constant")
+        *("depth", "flow", "unsupervised-depth", "scale-free-depth", "oracle-flow", "constant")
     }
     assert kinds["depthnet-unsup"].target is Target.VIDEO and kinds["depthnet-unsup"].trains
     assert kinds["depthnet-unsup"].scored_as is kinds["depthnet"].scored_as

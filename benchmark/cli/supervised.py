@@ -103,9 +103,17 @@ def run(model: str, data: Path, out: Path | None, **o) -> None:
     epe = f", EPE {m['epe']:.3f} px" if "epe" in m else ""
     click.echo(
         f"{model}: MAE {m['mae']:.3f} m, MRE {m['mre']:.3f}, MLE {m['mle']:.3f}, "
-        f"depth error {m['depth_error']:.3f} m{epe} on {summary['split']} "
+        f"depth error {m['depth_error']:.3f} m{epe}{_gt_scaled(m)} on {summary['split']} "
         f"({m['images']} pairs); report in {out / SUMMARY_MD}"
     )
+
+
+def _gt_scaled(m: dict) -> str:
+    """A scale-free depth's (sfmlearner's) scores with the ground truth's median scale ("GT";
+    the others are with PoseNet's, "P"), or "" for other methods."""
+    if "gt_mae" not in m:
+        return ""
+    return f" (P scale; GT median scale: MAE {m['gt_mae']:.3f} m, MRE {m['gt_mre']:.3f})"
 
 
 def _run_one(model: str, data: Path, out: Path, settings: dict) -> dict | None:
@@ -165,8 +173,8 @@ def eval_cmd(
         raise user_error(e) from None
     m = s["metrics"]
     click.echo(
-        f"{s['model']}: MAE {m['mae']:.3f} m, MRE {m['mre']:.3f}, MLE {m['mle']:.3f} on "
-        f"{s['split']} ({m['images']} pairs); report in {out / SUMMARY_MD}"
+        f"{s['model']}: MAE {m['mae']:.3f} m, MRE {m['mre']:.3f}, MLE {m['mle']:.3f}"
+        f"{_gt_scaled(m)} on {s['split']} ({m['images']} pairs); report in {out / SUMMARY_MD}"
     )
 
 

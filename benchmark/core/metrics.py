@@ -51,6 +51,11 @@ AVERAGING_RULE = (
 )
 
 
+def valid_mask(gt: torch.Tensor) -> torch.Tensor:
+    """The pixels that are scored: ground truth finite and > 0 (boolean, ``gt``'s shape)."""
+    return torch.isfinite(gt) & (gt > 0)
+
+
 def image_metrics(
     pred: torch.Tensor,
     gt: torch.Tensor,
@@ -81,7 +86,7 @@ def image_metrics(
 
     pred = pred.detach().to(torch.float64).clamp(min_depth, max_depth)
     gt = gt.detach().to(device=pred.device, dtype=torch.float64)
-    valid = torch.isfinite(gt) & (gt > 0)
+    valid = valid_mask(gt)
     # Invalid pixels get a harmless placeholder (1 m) so logs and ratios stay finite; they are
     # masked out of every mean below.
     gt = torch.where(valid, gt.clamp(max=max_depth), torch.ones_like(gt))

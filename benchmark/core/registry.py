@@ -2,7 +2,8 @@
 
 Methods (``MODELS``): DepthNet (depth directly), FlowNetS with a depth head, FlowNetS for optical
 flow followed by depth from flow and the known translation (benchmark.core.flow), DepthNet
-trained from video without depth with a PoseNet (``depthnet-unsup``, thesis chapter 5), the same
+trained from video without depth with a PoseNet (``depthnet-unsup``, thesis chapter 5), its
+single-frame baseline (``sfmlearner``: DispNet + PoseNet, depth up to a scale), the same
 geometry fed with ground-truth flow (``oracle-flow``) and a constant depth (``constant``); the last
 two have no network. ``-tiny`` variants (1/8 width) exist for tests and smoke runs. Each
 network's training hyper-parameters are a ``Recipe`` (benchmark.core.config: TrainConfig's recipe
@@ -21,6 +22,8 @@ from torch import nn
 from stillbox_gen.conventions import MAX_DEPTH
 
 from .config import Recipe
+from .dispnet import SCALES as DISP_SCALES
+from .dispnet import SfmLearnerNet
 from .models import FLOW_DIV, DepthNet, FlowNetS
 from .posenet import DepthPoseNet
 
@@ -62,6 +65,12 @@ UNSUPERVISED_RECIPE = replace(
     sequence_length=5,
 )
 
+#: The SFMLearner baseline (thesis §5.4, Zhou et al. 2017): depthnet-unsup's recipe and losses,
+#: with DispNet's 4 scales (weights 1/2^s, finest first)
+SFMLEARNER_RECIPE = replace(
+    UNSUPERVISED_RECIPE, loss_weights=tuple(1 / 2**s for s in range(DISP_SCALES))
+)
+
 
 class Target(Enum):
     """What a method's network learns and outputs (the value: data.PairDataset's ``target``)."""
@@ -79,6 +88,8 @@ class Scoring(Enum):
     FLOW = auto()  # depth from the network's flow and the known translation (core.flow)
     EXACT_FLOW = auto()  # the same geometry fed with the exact (ground-truth) flow
     CONSTANT = auto()  # the training split's median depth at every pixel
+    SCALE_FREE = auto()  # depth up to a scale: × |pair translation| / |PoseNet's| ("P"), and
+    # × median(ground truth) / median(prediction) per image ("GT", reported beside it)
 
 
 @dataclass(frozen=True)
@@ -107,11 +118,15 @@ FLOW = Kind("flow", Target.FLOW, Scoring.FLOW, best_by="epe")
 #: depth learnt without ground truth, scored as DEPTH (best.pt: the validation MAE against the
 #: ground truth, where the dataset has it; the loss never sees it)
 UNSUPERVISED = Kind("unsupervised-depth", Target.VIDEO, Scoring.DEPTH, best_by="mae")
+#: depth up to a scale learnt without ground truth (SFMLearner), scored as SCALE_FREE (best.pt:
+#: the validation MAE with the "P" scale, the one a user without ground truth has; the "GT"
+#: median scale would hide PoseNet's scale errors)
+SCALE_FREE = Kind("scale-free-depth", Target.VIDEO, Scoring.SCALE_FREE, best_by="mae")
 ORACLE_FLOW = Kind("oracle-flow", None, Scoring.EXACT_FLOW)
 CONSTANT = Kind("constant", None, Scoring.CONSTANT)
-#: every kind of method: a depth network (supervised or not), a flow network (depth by
-#: geometry), or no network
-KINDS = (DEPTH, FLOW, UNSUPERVISED, ORACLE_FLOW, CONSTANT)
+#: every kind of method: a depth network (supervised or not, metric or up to a scale), a flow
+#: network (depth by geometry), or no network
+KINDS = (DEPTH, FLOW, UNSUPERVISED, SCALE_FREE, ORACLE_FLOW, CONSTANT)
 
 TINY_WIDTH = 0.125  # channel multiplier of the -tiny variants
 
@@ -207,6 +222,21 @@ def _specs() -> list[ModelSpec]:
             lambda: DepthPoseNet(UNSUPERVISED_RECIPE.sequence_length, TINY_WIDTH),
             UNSUPERVISED,
             UNSUPERVISED_RECIPE,
+        ),
+        ModelSpec(
+            "sfmlearner",
+            "SFMLearner baseline: single-frame DispNet + PoseNet (3 translations) trained like "
+            "depthnet-unsup without pose normalisation; depth scaled by PoseNet or GT median",
+            lambda: SfmLearnerNet(SFMLEARNER_RECIPE.sequence_length),
+            SCALE_FREE,
+            SFMLEARNER_RECIPE,
+        ),
+        ModelSpec(
+            "sfmlearner-tiny",
+            f"sfmlearner {tiny}",
+            lambda: SfmLearnerNet(SFMLEARNER_RECIPE.sequence_length, TINY_WIDTH),
+            SCALE_FREE,
+            SFMLEARNER_RECIPE,
         ),
         ModelSpec(
             "oracle-flow",

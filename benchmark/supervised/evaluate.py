@@ -6,11 +6,13 @@ by |translation of the pair| / nominal displacement. A flow network's 1/4-resolu
 upsampled bilinearly to full resolution (its values are already full-resolution pixels), turned
 into depth with the pair's known translation (benchmark.core.flow.depth_from_flow, clamped to
 [0.1, 100] m, every pixel kept, the FOE's neighbourhood included) and its end-point error (EPE)
-against the exact flow is reported too. ``oracle-flow`` feeds the exact flow to the same geometry;
-``constant`` predicts one depth everywhere. Metrics: benchmark.core.metrics (per image at full
-resolution; then equal-weight mean over images), plus the original DepthNet "depth error" at 1/4
-resolution (for methods without a 1/4-resolution depth output: their full-resolution depth,
-area-downsampled by 4).
+against the exact flow is reported too. A depth known up to a scale (Scoring.SCALE_FREE:
+``sfmlearner``) is scaled by PoseNet's displacement ("P", its metrics) and by the ground truth's
+median ("GT", its metrics prefixed ``gt_``): benchmark.unsupervised.scaling. ``oracle-flow``
+feeds the exact flow to the same geometry; ``constant`` predicts one depth everywhere. Metrics:
+benchmark.core.metrics (per image at full resolution; then equal-weight mean over images), plus
+the original DepthNet "depth error" at 1/4 resolution (for methods without a 1/4-resolution
+depth output: their full-resolution depth, area-downsampled by 4).
 """
 
 from __future__ import annotations
@@ -49,13 +51,21 @@ class Method:
     depth_range: tuple[float, float] | None = None
 
 
-def predict(method: Method, batch: dict, device: torch.device) -> dict[str, torch.Tensor]:
+def predict(
+    method: Method, batch: dict, device: torch.device, store=None
+) -> dict[str, torch.Tensor]:
     """Depth (B, H, W) at full resolution, its 1/4-resolution version ``depth_q`` (B, 1, h, w)
-    and, for flow-based methods, the flow ``flow`` (B, 2, H, W) and the exact ``gt_flow``."""
+    and, for flow-based methods, the flow ``flow`` (B, 2, H, W) and the exact ``gt_flow``; for
+    Scoring.SCALE_FREE, ``depth_gt`` too (scaling.scale_free_depth, PoseNet reading the frames
+    of ``store``, the batch's FrameStore)."""
     gt = batch["target"].to(device)
     b, h, w = gt.shape
     out: dict[str, torch.Tensor] = {}
     scoring = method.kind.scored_as
+    if scoring is Scoring.SCALE_FREE:
+        from ..unsupervised.scaling import scale_free_depth
+
+        return scale_free_depth(method.model, batch, store, device)
     if scoring is Scoring.DEPTH:
         scale = batch["translation"].norm(dim=1).to(device) / method.nominal_displacement
         raw = method.model(batch["input"].to(device))[0]
@@ -142,10 +152,13 @@ def evaluate(
     for batch in loader:
         gt = batch["target"].to(device)
         h, w = gt.shape[-2:]
-        out = predict(method, batch, device)
+        out = predict(method, batch, device, getattr(dataset, "store", None))
         pred = out["depth"]
         m = metrics.image_metrics(pred, gt)
         m["depth_error"] = metrics.original_depth_error(out["depth_q"], gt)
+        if "depth_gt" in out:  # the same depth with the ground truth's median scale
+            with_gt = metrics.image_metrics(out["depth_gt"], gt)
+            m.update({f"gt_{k}": v for k, v in with_gt.items() if k != "valid_pixels"})
         if "flow" in out:
             m["epe"] = flow.endpoint_error(out["flow"], out["gt_flow"])
         for k, v in m.items():

@@ -287,6 +287,10 @@ LEARNING_CURVES = {
         ("train_loss", "train loss (photometric + smooth, eq. 5.5)"),
         ("val_mae", "validation MAE (m)"),
     ),
+    "scale-free-depth": (
+        ("train_loss", "train loss (photometric + smooth, eq. 5.5)"),
+        ("val_mae", "validation MAE, PoseNet's scale (m)"),
+    ),
 }
 
 

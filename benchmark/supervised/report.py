@@ -57,6 +57,10 @@ SCALE_RULES = {
     Scoring.EXACT_FLOW: "depth from the exact flow and the pair's known translation (FOE "
     f"geometry), clamped to {_CLAMP} m; every pixel scored",
     Scoring.CONSTANT: "one depth everywhere: the training split's median depth (no scale needed)",
+    Scoring.SCALE_FREE: "depth up to a scale: P (the metrics) = prediction × |pair translation| "
+    "/ |PoseNet's translation between the pair's frames| (no ground truth); GT (the metrics "
+    "prefixed gt_) = prediction × median(ground truth) / median(prediction) per image "
+    "(benchmark.unsupervised.scaling)",
 }
 FOE_BIN_EDGES = (0.0, 1.0, 2.0, 4.0, 8.0, 16.0, 32.0, 64.0, 128.0, np.inf)  # pixels
 
@@ -99,6 +103,15 @@ def _fmt(v) -> str:
     if isinstance(v, float) and 0 < abs(v) < 1e-3:
         return f"{v:.2e}"
     return "–" if v is None else f"{v:.3f}" if isinstance(v, float) else str(v)
+
+
+def scale_rows(name: str, m: dict) -> list[tuple[str, dict]]:
+    """``[(name, m)]``, or for a scale-free depth's metrics (``gt_`` keys: sfmlearner) one row
+    per scale: "P" (``m``) and "GT" (its ``gt_`` metrics)."""
+    if "gt_mae" not in m:
+        return [(name, m)]
+    gt = {k.removeprefix("gt_"): v for k, v in m.items() if k.startswith("gt_")}
+    return [(f"{name}, P", m), (f"{name}, GT", gt)]
 
 
 def markdown_table(rows: list[tuple[str, dict]]) -> str:
@@ -154,7 +167,7 @@ def summary_markdown(summary: dict) -> str:
     """summary.md: the scores beside the thesis' (thesis-style table), the scale rule and the
     error by distance to the focus of expansion, from a :func:`summarize` dict."""
     model, m = summary["model"], summary["metrics"]
-    rows = [(f"{model} (this run)", m)]
+    rows = scale_rows(f"{model} (this run)", m)
     ref = summary["thesis_reference_64px"]
     if ref:
         rows.append((f"{model.removesuffix('-tiny')} 64 px, thesis", ref))
@@ -219,7 +232,7 @@ def compare_runs(runs: list[Path]) -> tuple[str, str]:
     rows = []
     for run in runs:
         s = runfolder.read_summary(run)
-        rows.append((f"{s['model']} ({run.name})", s["metrics"]))
+        rows += scale_rows(f"{s['model']} ({run.name})", s["metrics"])
     buf = io.StringIO()
     w = csv.writer(buf)
     w.writerow(["run", *COLUMNS])

@@ -218,6 +218,9 @@ def check_resumed_settings(cfg: TrainConfig, ck: dict, where: str) -> None:
         )  # fmt: skip
 
 
+#: validation metrics of a scale-free depth (sfmlearner) with the ground truth's median scale
+GT_SCALED = ("gt_mae", "gt_mre", "gt_mle")
+
 #: running sums of the open stage (steps since the last validation), kept in the checkpoint so
 #: a resumed stage logs the same train_loss and samples/s as an uninterrupted one
 STAGE_KEYS = ("stage_loss_sum", "stage_steps", "stage_samples", "stage_wait", "stage_seconds")
@@ -508,6 +511,7 @@ class Trainer:
                 "train_loss": train_loss,
                 **{f"val_{k}": val[k] for k in ("mae", "mre", "mle", "depth_error")},
                 **({"val_epe": val["epe"]} if "epe" in val else {}),
+                **{f"val_{k}": val[k] for k in GT_SCALED if k in val},  # sfmlearner's "GT"
                 "samples_per_s": samples / seconds if seconds else 0.0,
                 "data_wait_share": wait / seconds if seconds else 0.0,
                 "seconds": seconds,
@@ -516,6 +520,8 @@ class Trainer:
             for k, v in row.items():
                 self.tb.add_scalar(f"epoch/{k}", v, st["global_step"])
             epe = f", EPE {val['epe']:.3f} px" if "epe" in val else ""
+            if "gt_mae" in val:  # scale-free depth: MAE above with PoseNet's scale ("P")
+                epe += f" (P scale; GT median scale: MAE {val['gt_mae']:.3f} m)"
             self.log(
                 f"step {st['global_step']}: train loss {train_loss:.3f}, val MAE "
                 f"{val['mae']:.3f} m, MRE {val['mre']:.3f}, MLE {val['mle']:.3f}{epe}"

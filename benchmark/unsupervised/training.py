@@ -113,7 +113,8 @@ class PhotometricStep:
     ``net``: the DepthPoseNet as trained (maybe compiled or DDP-wrapped; called with the pair
     and the sequence it returns both networks' outputs, see core.posenet.DepthPoseNet);
     ``weights``: w_s finest first;
-    ``d0``: metres; ``occlusion``: the occlusion module on. :meth:`losses` gives the terms.
+    ``d0``: metres (None: no eq. 5.2, PoseNet's translations used as they are, SFMLearner's
+    arbitrary scale); ``occlusion``: the occlusion module on. :meth:`losses` gives the terms.
     """
 
     def __init__(
@@ -122,7 +123,7 @@ class PhotometricStep:
         opt: torch.optim.Optimizer,
         device: torch.device,
         weights,
-        d0: float,
+        d0: float | None,
         smooth_weight: float,
         kappa: float,
         occlusion: bool = False,
@@ -143,7 +144,7 @@ class PhotometricStep:
 
     def losses(self, batch: dict) -> dict[str, torch.Tensor]:
         """``loss`` (eq. 5.5), ``photometric`` and ``smooth`` (their weighted sums over scales)
-        and ``translations`` ``(B, N, 3)``: the normalised translations used (metres)."""
+        and ``translations`` ``(B, N, 3)``: the translations used (metres once normalised)."""
         frames = batch["frames"].to(self.device)
         K = batch["K"].to(self.device)
         tgt = batch["target_index"].to(self.device)
@@ -152,7 +153,9 @@ class PhotometricStep:
         depths, poses = [floored(d.float()) for d in depths], poses.float()
         b, n, _, h, w = frames.shape
         rows = torch.arange(b, device=self.device)
-        translations = normalise_translations(compensate(poses, tgt), ref, self.d0)
+        translations = compensate(poses, tgt)
+        if self.d0 is not None:
+            translations = normalise_translations(translations, ref, self.d0)
         others = reference_indices(tgt, n)  # (B, N - 1)
         target = frames[rows, tgt]
         # every (scale, sample, reference) warped in one batch, scale-major then sample-major
@@ -209,8 +212,11 @@ class PhotometricStep:
 def video_training(cfg, net, opt, device, store, d0: float, autocast=None):
     """The training set and step of a ``depthnet-unsup*`` run (Trainer.setup): a
     SequenceDataset of ``cfg.sequence_length`` frames over ``store`` and a PhotometricStep
-    with ``d0`` metres. FieldError on ``data`` when its scenes are shorter than a sequence."""
+    with ``d0`` metres, or without pose normalisation for a method whose depth has no scale
+    (Scoring.SCALE_FREE: sfmlearner). FieldError on ``data`` when its scenes are shorter than a
+    sequence, on ``shift`` when such a method's pairs do not fit in one (its "P" scale)."""
     from ..core.errors import FieldError
+    from ..core.registry import MODELS, Scoring
     from .sequences import SequenceDataset
 
     frames = min(len(s.rgb) for s in store.scenes)
@@ -221,6 +227,13 @@ def video_training(cfg, net, opt, device, store, d0: float, autocast=None):
             f"{cfg.sequence_length}",
             where=f" {cfg.data}",
         )
+    if MODELS[cfg.model].kind.scored_as is Scoring.SCALE_FREE:
+        d0 = None
+        if cfg.shift >= cfg.sequence_length:
+            raise FieldError(
+                "shift", f"'{cfg.model}' is scaled by PoseNet over sequences of "
+                f"{cfg.sequence_length} frames: pairs closer than that, got {cfg.shift}",
+            )  # fmt: skip
     lam, kappa = smooth_settings(cfg.smooth_weight, cfg.smooth_kappa, bool(cfg.occlusion))
     step = PhotometricStep(
         net, opt, device, cfg.loss_weights, d0, lam, kappa, bool(cfg.occlusion), autocast
