@@ -2,7 +2,8 @@
 
 Methods (``MODELS``): DepthNet (depth directly), FlowNetS with a depth head, FlowNetS for optical
 flow followed by depth from flow and the known translation (benchmark.core.flow), DepthNet
-trained from video without depth with a PoseNet (``depthnet-unsup``, thesis chapter 5), the same
+trained from video without depth with a PoseNet (``depthnet-unsup``, thesis chapter 5; a 6-DoF
+PoseNet for rotating data: ``depthnet-unsup-6dof``), the same
 geometry fed with ground-truth flow (``oracle-flow``) and a constant depth (``constant``); the last
 two have no network. ``-tiny`` variants (1/8 width) exist for tests and smoke runs. Each
 network's training hyper-parameters are a ``Recipe`` (benchmark.core.config: TrainConfig's recipe
@@ -60,7 +61,11 @@ UNSUPERVISED_RECIPE = replace(
     weight_decay=0.0,
     loss_weights=tuple(1 / 2**s for s in range(5)),
     sequence_length=5,
+    pose="translation",
 )
+#: The same with a 6-DoF PoseNet (rotating data, thesis §5.2.1-5.2.2: its rotation stabilises
+#: the reference before DepthNet and warps every frame)
+UNSUPERVISED_6DOF_RECIPE = replace(UNSUPERVISED_RECIPE, pose="6dof")
 
 
 class Target(Enum):
@@ -207,6 +212,20 @@ def _specs() -> list[ModelSpec]:
             lambda: DepthPoseNet(UNSUPERVISED_RECIPE.sequence_length, TINY_WIDTH),
             UNSUPERVISED,
             UNSUPERVISED_RECIPE,
+        ),
+        ModelSpec(
+            "depthnet-unsup-6dof",
+            "depthnet-unsup with a 6-DoF PoseNet, for rotating data (thesis 5.2.2)",
+            lambda: DepthPoseNet(UNSUPERVISED_6DOF_RECIPE.sequence_length, dof=6),
+            UNSUPERVISED,
+            UNSUPERVISED_6DOF_RECIPE,
+        ),
+        ModelSpec(
+            "depthnet-unsup-6dof-tiny",
+            f"depthnet-unsup-6dof {tiny}",
+            lambda: DepthPoseNet(UNSUPERVISED_6DOF_RECIPE.sequence_length, TINY_WIDTH, dof=6),
+            UNSUPERVISED,
+            UNSUPERVISED_6DOF_RECIPE,
         ),
         ModelSpec(
             "oracle-flow",
