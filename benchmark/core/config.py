@@ -330,6 +330,7 @@ class TrainConfig:
                 "model's]"
             },
             kind="text",
+            metavar="MODE",
             rule=(lambda v: v in POSE_MODES, f"must be one of {', '.join(POSE_MODES)}"),
         ),
     )
