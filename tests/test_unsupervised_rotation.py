@@ -118,7 +118,7 @@ def test_pose_modes_fit_the_network_and_the_data():
         ("orientation", "translation", [still], "d is stabilised"),
         ("6dof", "6dof", [still], "d is stabilised"),
         ("6dof", "translation", [turning], "depthnet-unsup-6dof"),
-        ("orientation", "6dof", [turning], "3-output PoseNet"),
+        ("orientation", "6dof", [turning], "needs depthnet-unsup(-tiny)"),
     ):
         with pytest.raises(FieldError, match="^pose: ") as e:
             check_pose(pose, model, scenes, "d")

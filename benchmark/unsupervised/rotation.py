@@ -38,7 +38,7 @@ def check_pose(pose: str, model_pose: str, scenes, data: str) -> None:
     its recipe's, "6dof" for a 6-output PoseNet) or the data (``scenes``: the training split,
     stillbox_gen.dataset.Scene, in folder ``data``)."""
     if (pose == "6dof") != (model_pose == "6dof"):
-        need = "depthnet-unsup-6dof*" if pose == "6dof" else "a 3-output PoseNet (depthnet-unsup*)"
+        need = "depthnet-unsup-6dof(-tiny)" if pose == "6dof" else "depthnet-unsup(-tiny)"
         raise FieldError("pose", f"'{pose}' needs {need}")
     rotating = [s.index for s in scenes if not s.stabilised]
     if pose in ROTATING_MODES and not rotating:
