@@ -19,7 +19,9 @@ CLI = [sys.executable, "-m", "stillbox_gen.cli"]
 TINY_SHARES = (0.5, 0.25, 0.25)  # train/val/test shares of tiny_dataset
 
 # Fixtures that render a dataset with Blender (here and in test_stats.py).
-RENDER_FIXTURES = frozenset({"default_dataset", "custom_dataset", "tiny_dataset"})
+RENDER_FIXTURES = frozenset(
+    {"default_dataset", "custom_dataset", "tiny_dataset", "rotating_dataset"}
+)
 
 
 @pytest.hookimpl(tryfirst=True)  # before -m deselects by marker
@@ -214,5 +216,22 @@ def tiny_dataset(tmp_path_factory) -> Path:
         "--out",
         out,
         "--quiet",
+    )
+    return out
+
+
+@pytest.fixture(scope="session")
+def rotating_dataset(tmp_path_factory) -> Path:
+    """The unstabilised preset spinning at 5°/frame (its 0.2° is a tenth of a pixel here), 64 px
+    (DepthNet's smallest), 3 scenes of 6 frames, one per split: depthnet-unsup's --pose."""
+    from stillbox_gen.manifest import split_of
+
+    splits = {"train", "val", "test"}
+    seed = next(s for s in range(100) if {split_of(s, k, TINY_SHARES) for k in range(3)} == splits)
+    out = tmp_path_factory.mktemp("bench") / "rotating"
+    run_cli(
+        *("--preset", "stillbox-unstabilised", "--rotation-speed", 5, "--res", 64),
+        *("--scenes", 3, "--frames", 6, "--seed", seed, "--quality", "fast", "--out", out),
+        *("--split", ",".join(map(str, TINY_SHARES)), "--quiet"),
     )
     return out

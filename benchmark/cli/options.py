@@ -91,7 +91,9 @@ _TYPES = {"int": int, "float": float, "text": str}
 
 
 def _shown(value) -> str:
-    """A recipe value as --help shows it: 0.01, 55; a range as 10,60."""
+    """A recipe value as --help shows it: 0.01, 55; a range as 10,60; a word as it is."""
+    if value is None or isinstance(value, str):
+        return str(value)
     return ",".join(f"{v:g}" for v in value) if isinstance(value, tuple) else f"{value:g}"
 
 

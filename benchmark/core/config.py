@@ -74,6 +74,10 @@ def parse_range(text: str) -> tuple[float, float]:
 
 
 AT_LEAST_1 = (lambda v: v >= 1, "must be at least 1")
+#: TrainConfig.pose of the depthnet-unsup* methods (thesis §5.2.1-5.2.2): PoseNet's translations
+#: on stabilised data; on rotating data, the dataset's known rotations ("O" in Tables 5.1-5.2) with
+#: PoseNet's translations, or PoseNet's 6 DoF (benchmark.unsupervised.rotation)
+POSE_MODES = ("translation", "orientation", "6dof")
 MODELS_DEFAULT = "  [default: model's]"  # a recipe field's default in compare's help
 
 
@@ -314,6 +318,22 @@ class TrainConfig:
     )
     smooth_weight: float | None = setting(None, recipe=True)
     smooth_kappa: float | None = setting(None, recipe=True)
+    pose: str | None = setting(
+        None,
+        recipe=True,
+        flag=Flag(
+            "--pose",
+            {
+                "run": "depthnet-unsup*: translation (PoseNet's 3 outputs, stabilised data), "
+                "orientation (rotating data: the dataset's known rotations, PoseNet's "
+                "translations) or 6dof (rotating data: depthnet-unsup-6dof*).  [default: "
+                "model's]"
+            },
+            kind="text",
+            metavar="MODE",
+            rule=(lambda v: v in POSE_MODES, f"must be one of {', '.join(POSE_MODES)}"),
+        ),
+    )
 
 
 #: TrainConfig's fields with a command-line flag, in TrainConfig's order

@@ -39,14 +39,15 @@ CACHE_LIMIT_BYTES = 8 * 1024**3
 DataError = DatasetError
 
 
-def load_scenes(root: str | os.PathLike, split: str) -> list[Scene]:
+def load_scenes(root: str | os.PathLike, split: str, rotations: bool = False) -> list[Scene]:
     """Scenes of one split, in index order (stillbox_gen.dataset.Dataset.scenes). Raises
     DataError naming the faulty file, or the record whose file name would lead outside
-    ``root``, or a scene with camera rotations (these baselines need a stabilised dataset)."""
+    ``root``, or, unless ``rotations`` (depthnet-unsup*'s ``--pose``), a scene with camera
+    rotations (these baselines need a stabilised dataset)."""
     ds = Dataset(root)
     scenes = ds.scenes(split)
     for s in scenes:
-        if not s.stabilised:
+        if not s.stabilised and not rotations:
             meta = ds.root / layout.chunk_name(s.index) / layout.METADATA_JSON
             raise DataError(
                 f"{meta}: scene {s.index} has camera rotations; these baselines need a "

@@ -5,12 +5,13 @@ stacked on the channel axis, ``(B, 3·N, H, W)``, through seven stride-2 convolu
 7, 5, then 3; ReLU) and a 1×1 prediction averaged over the remaining pixels. It outputs the pose
 of every frame relative to the *last* one, ``(B, N, dof)``: ``dof = 3`` translations for
 stabilised footage, 6 (translation, then rotation as Euler angles in radians) otherwise; the last
-frame's row is exactly zero. Translation convention: that of
+frame's row is exactly zero. Pose convention: that of
 :mod:`benchmark.unsupervised.reprojection`, ``X_i = R_i·X_last + τ_i`` (camera coordinates of
-frame i from those of the last frame); its unit is arbitrary (the pose normalisation of eq. 5.2
-removes it). Outputs are multiplied by :data:`POSE_SCALE` (small initial poses, as the author's
-code). Compensation to the target frame and normalisation are in
-:mod:`benchmark.unsupervised.training`.
+frame i from those of the last frame, OpenCV axes x right, y down, z forward); ``R_i`` is
+:func:`euler_matrix` of the angles (identity with ``dof = 3``); the unit of ``τ_i`` is arbitrary
+(the pose normalisation of eq. 5.2 removes it). Outputs are multiplied by :data:`POSE_SCALE`
+(small initial poses, as the author's code). Compensation to the target frame and normalisation
+are in :mod:`benchmark.unsupervised.training`, rotations in :mod:`benchmark.unsupervised.rotation`.
 
 :class:`DepthPoseNet` holds a DepthNet (``depth``) and a PoseNet (``pose``) in one module, so
 that a run folder's checkpoint has both; called on a ``(B, 6, H, W)`` pair it is the DepthNet
@@ -38,6 +39,23 @@ POSE_SCALE = 0.1
 #: them, pulling the neighbouring depths towards 0.1 m (measured: see the README, "Training
 #: without depth").
 INITIAL_DEPTH = 10.0
+
+
+def euler_matrix(angles: torch.Tensor) -> torch.Tensor:
+    """Rotation matrices ``(..., 3, 3)`` of Euler angles ``(..., 3)`` = (α, β, γ), radians:
+    ``R = R_x(α)·R_y(β)·R_z(γ)``, each factor the right-handed rotation about that camera axis,
+    e.g. ``R_y(β) = [[cos β, 0, sin β], [0, 1, 0], [−sin β, 0, cos β]]`` (PoseNet's 6-DoF
+    rotation, module doc; differentiable)."""
+    cos, sin = angles.cos(), angles.sin()
+    one, zero = torch.ones_like(angles[..., 0]), torch.zeros_like(angles[..., 0])
+
+    def rot(k: int, i: int, j: int) -> torch.Tensor:  # about axis k: the (i, j) plane turns
+        m = [[zero] * 3 for _ in range(3)]
+        m[k][k] = one
+        m[i][i], m[i][j], m[j][i], m[j][j] = cos[..., k], -sin[..., k], sin[..., k], cos[..., k]
+        return torch.stack([torch.stack(row, -1) for row in m], -2)
+
+    return rot(0, 1, 2) @ rot(1, 2, 0) @ rot(2, 0, 1)
 
 
 class PoseNet(nn.Module):
@@ -103,9 +121,15 @@ class DepthPoseNet(nn.Module):
         self.min_multiple = self.depth.min_multiple
         self.frames = frames
 
-    def forward(self, pair: torch.Tensor, sequence: torch.Tensor | None = None):
+    def forward(self, pair: torch.Tensor, sequence: torch.Tensor | None = None, stabilise=None):
         """DepthNet's outputs for ``pair``; with ``sequence`` ``(B, 3·N, H, W)``, the pair
-        ``(depths, poses)`` (one forward for training, so that DDP sees both networks)."""
+        ``(depths, poses)`` (one forward for training, so that DDP sees both networks). With
+        ``stabilise`` (rotating data, thesis §5.2.2), PoseNet runs first and DepthNet reads
+        ``stabilise(pair, poses)``: the pair with its reference warped to the target's
+        orientation (benchmark.unsupervised.rotation)."""
         if sequence is None:
             return self.depth(pair)
+        if stabilise is not None:
+            poses = self.pose(sequence)
+            return self.depth(stabilise(pair, poses)), poses
         return self.depth(pair), self.pose(sequence)

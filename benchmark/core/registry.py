@@ -2,8 +2,9 @@
 
 Methods (``MODELS``): DepthNet (depth directly), FlowNetS with a depth head, FlowNetS for optical
 flow followed by depth from flow and the known translation (benchmark.core.flow), DepthNet
-trained from video without depth with a PoseNet (``depthnet-unsup``, thesis chapter 5), its
-single-frame baseline (``sfmlearner``: DispNet + PoseNet, depth up to a scale), the same
+trained from video without depth with a PoseNet (``depthnet-unsup``, thesis chapter 5; a 6-DoF
+PoseNet for rotating data: ``depthnet-unsup-6dof``), its single-frame baseline
+(``sfmlearner``: DispNet + PoseNet, depth up to a scale), the same
 geometry fed with ground-truth flow (``oracle-flow``) and a constant depth (``constant``); the last
 two have no network. ``-tiny`` variants (1/8 width) exist for tests and smoke runs. Each
 network's training hyper-parameters are a ``Recipe`` (benchmark.core.config: TrainConfig's recipe
@@ -63,7 +64,11 @@ UNSUPERVISED_RECIPE = replace(
     weight_decay=0.0,
     loss_weights=tuple(1 / 2**s for s in range(5)),
     sequence_length=5,
+    pose="translation",
 )
+#: The same with a 6-DoF PoseNet (rotating data, thesis §5.2.1-5.2.2: its rotation stabilises
+#: the reference before DepthNet and warps every frame)
+UNSUPERVISED_6DOF_RECIPE = replace(UNSUPERVISED_RECIPE, pose="6dof")
 
 #: The SFMLearner baseline (thesis §5.4, Zhou et al. 2017): depthnet-unsup's recipe and losses,
 #: with DispNet's 4 scales (weights 1/2^s, finest first)
@@ -237,6 +242,20 @@ def _specs() -> list[ModelSpec]:
             lambda: SfmLearnerNet(SFMLEARNER_RECIPE.sequence_length, TINY_WIDTH),
             SCALE_FREE,
             SFMLEARNER_RECIPE,
+        ),
+        ModelSpec(
+            "depthnet-unsup-6dof",
+            "depthnet-unsup with a 6-DoF PoseNet, for rotating data (thesis 5.2.2)",
+            lambda: DepthPoseNet(UNSUPERVISED_6DOF_RECIPE.sequence_length, dof=6),
+            UNSUPERVISED,
+            UNSUPERVISED_6DOF_RECIPE,
+        ),
+        ModelSpec(
+            "depthnet-unsup-6dof-tiny",
+            f"depthnet-unsup-6dof {tiny}",
+            lambda: DepthPoseNet(UNSUPERVISED_6DOF_RECIPE.sequence_length, TINY_WIDTH, dof=6),
+            UNSUPERVISED,
+            UNSUPERVISED_6DOF_RECIPE,
         ),
         ModelSpec(
             "oracle-flow",

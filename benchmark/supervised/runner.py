@@ -35,14 +35,20 @@ ORACLE_FLOW_NOISE_PX = 0.05  # oracle-flow is also scored with this much flow no
 
 
 def eval_split(
-    data: Path, split: str, shift: int, progress: bool, ckpt: Path | None = None
+    data: Path,
+    split: str,
+    shift: int,
+    progress: bool,
+    ckpt: Path | None = None,
+    rotations: bool = False,
 ) -> tuple[str, list, PairDataset]:
     """(split actually used, its scenes, eval-mode PairDataset); test falls back to val. A
     ``shift`` (frames) not below the scenes' frame count is a FieldError on ``shift`` (on
-    ``ckpt`` when the shift is that checkpoint's), raised before any frame is read."""
-    scenes = load_scenes(data, split)
+    ``ckpt`` when the shift is that checkpoint's), raised before any frame is read.
+    ``rotations``: scenes with camera rotations are accepted (load_scenes)."""
+    scenes = load_scenes(data, split, rotations)
     if not scenes and split == "test":
-        split, scenes = "val", load_scenes(data, "val")
+        split, scenes = "val", load_scenes(data, "val", rotations)
     if not scenes:
         raise FieldError("data", f"'{data}' has no scenes in split '{split}'")
     frames = min(s.frames for s in scenes)
@@ -104,7 +110,8 @@ def score_checkpoint(
     model.to(dev)
     shift = ck.get("shift", NOMINAL_SHIFT)
     if split_data is None or split_data[2].shift != shift:
-        split_data = eval_split(data, split, shift, progress, ckpt)
+        video = registry.MODELS[name].kind.target is registry.Target.VIDEO
+        split_data = eval_split(data, split, shift, progress, ckpt, rotations=video)
     split, scenes, dataset = split_data
     depth_range = ck.get("depth_range", [0.0, MAX_DEPTH])
     clamp = registry.output_clamp(depth_range)
@@ -193,8 +200,11 @@ def train_and_score(cfg: TrainConfig) -> dict | None:
     out = Path(cfg.out)
     trainer = Trainer(cfg)
     scored = []  # the test split, read (every frame) before the run folder is made
+    video = registry.MODELS[cfg.model].kind.target is registry.Target.VIDEO
     trainer.setup(
-        check=lambda: scored.append(eval_split(Path(cfg.data), "test", cfg.shift, cfg.progress))
+        check=lambda: scored.append(
+            eval_split(Path(cfg.data), "test", cfg.shift, cfg.progress, rotations=video)
+        )
     )
     t0 = time.perf_counter()
     trainer.fit()

@@ -180,7 +180,7 @@ RESUMED_FIELDS = (
     *("epochs", "batch_size", "lr", "shift", "depth_range", "seed", "pretrained"),
     *("optimizer", "momentum", "dampening", "beta2", "weight_decay"),
     *("milestones", "gamma", "loss_weights", "loss_scale"),
-    *("sequence_length", "occlusion", "smooth_weight", "smooth_kappa"),
+    *("sequence_length", "occlusion", "smooth_weight", "smooth_kappa", "pose"),
 )
 
 
@@ -315,8 +315,9 @@ class Trainer:
                 "depth_range",
                 f"must be LO,HI metres with 0 <= LO < HI <= {MAX_DEPTH:g}, got {lo:g},{hi:g}",
             )
-        train_scenes = load_scenes(Path(cfg.data), "train")
-        val_scenes = load_scenes(Path(cfg.data), "val")
+        video = self.kind.target is registry.Target.VIDEO  # may learn rotations (--pose)
+        train_scenes = load_scenes(Path(cfg.data), "train", rotations=video)
+        val_scenes = load_scenes(Path(cfg.data), "val", rotations=video)
         if not train_scenes or not val_scenes:
             raise FieldError(
                 "data",

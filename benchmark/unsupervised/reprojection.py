@@ -193,6 +193,21 @@ def inverse_warp(
     return inverse_warp_rays(reference, depth, *warp_rays(rotation, t, K, h, w))
 
 
+def rotate_frame(
+    reference: torch.Tensor, rotation: torch.Tensor, K: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The reference frame seen with the target's orientation (eq. 5.1, thesis §5.2.2).
+
+    ``out(p) = I_ref(Π(K·R·K⁻¹p))``: :func:`inverse_warp` with a zero translation, where the
+    depth drops out (any positive depth gives the same pixels). ``rotation`` ``(B, 3, 3)`` is
+    the target → reference rotation (module doc), ``K`` pixels. Returns the warped frame
+    ``(B, C, H, W)`` and the mask of pixels seen by the reference (outside it, the frame's
+    border pixels, as :func:`inverse_warp`)."""
+    b, _, h, w = reference.shape
+    ones = reference.new_ones(b, 1, h, w)
+    return inverse_warp(reference, ones, rotation, reference.new_zeros(b, 3), K)
+
+
 def inverse_warp_rays(
     reference: torch.Tensor, depth: torch.Tensor, rays: torch.Tensor, offset: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor]:

@@ -4,7 +4,8 @@ A sample is N consecutive frames of one scene (N = ``length``, 5 by default as �
 target index t and a reference index r ≠ t, both drawn uniformly from ``numpy.random
 .default_rng([seed, epoch, index])`` (the same batches whatever the machine; a resumed run
 continues the sequence). There is one sample per (scene, first frame) window. No depth is read:
-the known translations are returned for logging and tests only, never for the loss. No flips
+the known translations are returned for logging and tests only, never for the loss; the known
+rotations (rotating scenes) are the loss's with ``--pose orientation``. No flips
 (the author's code has them off too).
 """
 
@@ -49,7 +50,10 @@ class SequenceDataset:
         input; ``input`` (B, 6, H, W): the (reference, target) pair, DepthNet's input;
         ``target_index``, ``reference_index`` (B,) int64; ``K`` (B, 3, 3) pixels;
         ``translation`` (B, N, 3) metres: the true camera displacement from the target to each
-        frame (target axes; logging and tests only); ``scene`` (B,).
+        frame (target axes; logging and tests only); ``rotation`` (B, N, 3, 3): the true
+        rotation ``R_{t→i}`` from the target's camera axes to each frame's (identity on
+        stabilised scenes; the loss's rotation with ``--pose orientation``, as the dataset's
+        orientations stand for a UAV's inertial sensors, §5.2.2); ``scene`` (B,).
         """
         epoch = self.epoch if epoch is None else epoch
         draws = [self.draw(i, epoch) for i in indices]
@@ -57,11 +61,16 @@ class SequenceDataset:
         h, w = self.store.height, self.store.width
         raw = np.empty((n, length, 3, h, w), np.uint8)
         translation, K = np.empty((n, length, 3)), np.empty((n, 3, 3))
+        rotation = np.tile(np.eye(3), (n, length, 1, 1))
         for j, (k, first, t, _) in enumerate(draws):
             scene = self.store.scenes[k]
             for f in range(length):
                 raw[j, f] = self.store.rgb(k, first + f).transpose(2, 0, 1)
                 translation[j, f] = scene.translation(first + t, first + f)
+                if not scene.stabilised:  # X_f = R·X_t + τ: camera f sits at −Rᵀτ
+                    pose = scene.relative_pose(first + t, first + f)
+                    rotation[j, f] = pose[:3, :3]
+                    translation[j, f] = -pose[:3, :3].T @ pose[:3, 3]
             K[j] = scene.K
         frames = torch.from_numpy(raw).float() / 255.0
         sequence = (frames - 0.5) / 0.2
@@ -77,5 +86,6 @@ class SequenceDataset:
             "reference_index": ref,
             "K": torch.from_numpy(K.astype(np.float32)),
             "translation": torch.from_numpy(translation.astype(np.float32)),
+            "rotation": torch.from_numpy(rotation.astype(np.float32)),
             "scene": torch.tensor([self.store.scenes[d[0]].index for d in draws]),
         }

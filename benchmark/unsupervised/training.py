@@ -46,6 +46,7 @@ from .reprojection import (
     occlusion_mask,
     photometric_map,
 )
+from .rotation import ROTATING_MODES, Stabiliser, target_rotations
 from .toy import thesis_value
 
 #: ε of eq. 5.2 (the thesis gives no value; the author's training code uses 1e-5), in PoseNet's
@@ -70,11 +71,17 @@ def floored(depth: torch.Tensor) -> torch.Tensor:
     return depth + (depth.clamp(min=MIN_DEPTH) - depth).detach()
 
 
-def compensate(poses: torch.Tensor, target_index: torch.Tensor) -> torch.Tensor:
+def compensate(
+    poses: torch.Tensor, target_index: torch.Tensor, rotations: torch.Tensor | None = None
+) -> torch.Tensor:
     """Translations relative to the last frame ``(B, N, 3)`` -> relative to the target frame:
-    ``τ_i − τ_t`` (stabilised frames: ``X_i = X_t + τ_i − τ_t``); the target's row is 0."""
+    ``τ_i − τ_t`` (stabilised frames: ``X_i = X_t + τ_i − τ_t``); the target's row is 0. With
+    ``rotations`` ``R_{t→i}`` ``(B, N, 3, 3)`` (rotating data, benchmark.unsupervised.rotation):
+    ``τ_i − R_{t→i}·τ_t`` (``X_i = R_{t→i}·X_t + τ_i − R_{t→i}·τ_t``)."""
     rows = torch.arange(poses.shape[0], device=poses.device)
-    return poses - poses[rows, target_index].unsqueeze(1)
+    if rotations is None:
+        return poses - poses[rows, target_index].unsqueeze(1)
+    return poses - (rotations @ poses[rows, target_index].view(-1, 1, 3, 1)).squeeze(-1)
 
 
 def normalise_translations(
@@ -114,7 +121,9 @@ class PhotometricStep:
     and the sequence it returns both networks' outputs, see core.posenet.DepthPoseNet);
     ``weights``: w_s finest first;
     ``d0``: metres (None: no eq. 5.2, PoseNet's translations used as they are, SFMLearner's
-    arbitrary scale); ``occlusion``: the occlusion module on. :meth:`losses` gives the terms.
+    arbitrary scale); ``occlusion``: the occlusion module on; ``pose``: TrainConfig.pose
+    (where the rotations come from, benchmark.unsupervised.rotation). :meth:`losses` gives
+    the terms.
     """
 
     def __init__(
@@ -128,19 +137,24 @@ class PhotometricStep:
         kappa: float,
         occlusion: bool = False,
         autocast: torch.dtype | None = None,
+        pose: str = "translation",
     ):
         self.net, self.opt, self.device = net, opt, device
         self.weights, self.d0 = tuple(weights), d0
         self.smooth_weight, self.kappa, self.occlusion = smooth_weight, kappa, occlusion
-        self.autocast = autocast
+        self.autocast, self.pose = autocast, pose
 
     def _forward(self, batch: dict) -> tuple[list[torch.Tensor], torch.Tensor]:
         pair = batch["input"].to(self.device)
         sequence = batch["sequence"].to(self.device)
+        args = (pair, sequence)
+        if self.pose in ROTATING_MODES:  # DepthNet reads the stabilised pair (eq. 5.1)
+            keys = ("rotation", "target_index", "reference_index", "K")
+            args += (Stabiliser(self.pose, *(batch[k].to(self.device) for k in keys)),)
         if self.autocast is None:
-            return self.net(pair, sequence)
+            return self.net(*args)
         with torch.autocast(self.device.type, self.autocast):
-            return self.net(pair, sequence)
+            return self.net(*args)
 
     def losses(self, batch: dict) -> dict[str, torch.Tensor]:
         """``loss`` (eq. 5.5), ``photometric`` and ``smooth`` (their weighted sums over scales)
@@ -153,7 +167,9 @@ class PhotometricStep:
         depths, poses = [floored(d.float()) for d in depths], poses.float()
         b, n, _, h, w = frames.shape
         rows = torch.arange(b, device=self.device)
-        translations = compensate(poses, tgt)
+        known = batch["rotation"].to(self.device) if self.pose in ROTATING_MODES else None
+        rotations = target_rotations(self.pose, poses, known, tgt)  # R_{t→i}, None: identity
+        translations = compensate(poses[..., :3], tgt, rotations)
         if self.d0 is not None:
             translations = normalise_translations(translations, ref, self.d0)
         others = reference_indices(tgt, n)  # (B, N - 1)
@@ -168,8 +184,10 @@ class PhotometricStep:
         refs = frames[picked].reshape(pairs, 3, h, w).repeat(scales, 1, 1, 1)
         moves = translations[picked].reshape(pairs, 3).repeat(scales, 1)
         Ks = K.repeat_interleave(n - 1, 0).repeat(scales, 1, 1)
-        warped, valid = inverse_warp(refs, up, None, moves, Ks)
-        occluded = self._occlusions(depths[0], translations, others, K, (h, w))
+        turns = None if rotations is None else rotations[picked].reshape(pairs, 3, 3)
+        repeated = None if turns is None else turns.repeat(scales, 1, 1)
+        warped, valid = inverse_warp(refs, up, repeated, moves, Ks)
+        occluded = self._occlusions(depths[0], translations, others, K, (h, w), turns)
         if occluded is not None:
             valid = valid & ~occluded.repeat(scales, 1, 1, 1)
         targets = target.repeat_interleave(n - 1, 0).repeat(scales, 1, 1, 1)
@@ -186,9 +204,10 @@ class PhotometricStep:
         return {"loss": photo + smooth, "photometric": photo, "smooth": smooth,
                 "translations": translations}  # fmt: skip
 
-    def _occlusions(self, depth, translations, others, K, size) -> torch.Tensor | None:
+    def _occlusions(self, depth, translations, others, K, size, turns=None) -> torch.Tensor | None:
         """``(B·(N − 1), 1, H, W)``, sample-major: the target pixels the occlusion module finds
-        hidden in each reference (finest scale's depth, detached), or None when it is off."""
+        hidden in each reference (finest scale's depth, detached; ``turns``: the rotations
+        ``(B·(N − 1), 3, 3)``, None for none), or None when it is off."""
         if not self.occlusion:
             return None
         b, refs = others.shape
@@ -196,7 +215,7 @@ class PhotometricStep:
         moves = translations[torch.arange(b, device=depth.device).unsqueeze(1), others]
         return occlusion_mask(
             up.repeat_interleave(refs, 0),
-            None,
+            None if turns is None else turns.detach(),
             moves.reshape(-1, 3).detach(),
             K.repeat_interleave(refs, 0),
         )
@@ -214,11 +233,14 @@ def video_training(cfg, net, opt, device, store, d0: float, autocast=None):
     SequenceDataset of ``cfg.sequence_length`` frames over ``store`` and a PhotometricStep
     with ``d0`` metres, or without pose normalisation for a method whose depth has no scale
     (Scoring.SCALE_FREE: sfmlearner). FieldError on ``data`` when its scenes are shorter than a
-    sequence, on ``shift`` when such a method's pairs do not fit in one (its "P" scale)."""
+    sequence, on ``shift`` when such a method's pairs do not fit in one (its "P" scale), on
+    ``pose`` when the mode does not fit the network or the data (rotation.check_pose)."""
+    from ..core import registry
     from ..core.errors import FieldError
-    from ..core.registry import MODELS, Scoring
+    from .rotation import check_pose
     from .sequences import SequenceDataset
 
+    check_pose(cfg.pose, registry.MODELS[cfg.model].recipe.pose, store.scenes, cfg.data)
     frames = min(len(s.rgb) for s in store.scenes)
     if frames < cfg.sequence_length:
         raise FieldError(
@@ -227,7 +249,7 @@ def video_training(cfg, net, opt, device, store, d0: float, autocast=None):
             f"{cfg.sequence_length}",
             where=f" {cfg.data}",
         )
-    if MODELS[cfg.model].kind.scored_as is Scoring.SCALE_FREE:
+    if registry.MODELS[cfg.model].kind.scored_as is registry.Scoring.SCALE_FREE:
         d0 = None
         if cfg.shift >= cfg.sequence_length:
             raise FieldError(
@@ -236,6 +258,7 @@ def video_training(cfg, net, opt, device, store, d0: float, autocast=None):
             )  # fmt: skip
     lam, kappa = smooth_settings(cfg.smooth_weight, cfg.smooth_kappa, bool(cfg.occlusion))
     step = PhotometricStep(
-        net, opt, device, cfg.loss_weights, d0, lam, kappa, bool(cfg.occlusion), autocast
-    )
+        net, opt, device, cfg.loss_weights, d0, lam, kappa, bool(cfg.occlusion), autocast,
+        cfg.pose,
+    )  # fmt: skip
     return SequenceDataset(store, cfg.sequence_length, cfg.seed), step
