@@ -185,3 +185,20 @@ def test_footage_sequences_on_numbers():
     ]
     K = prepared_K((64, 32), Crop(x=10, y=5, width=128, height=64, factor=1.0), 200.0)
     np.testing.assert_allclose(K, [[100.0, 0, 31.5], [0, 100.0, 15.5], [0, 0, 1]])
+
+
+def test_poses_give_the_pose_cosine_column(files, tmp_path):
+    """With --poses (camera axes) steps.csv has the cosine between PoseNet's reference
+    translation and the known one; with --speed it is empty (the direction is unknown)."""
+    poses = tmp_path / "poses.csv"
+    poses.write_text("x,y,z\n" + "".join(f"{0.3 * k},0,0\n" for k in range(8)))
+    out = tmp_path / "ft"
+    proc = invoke_main(
+        cli.main, "finetune", "--ckpt", files["ckpt"], "--input", files["folder"], "--out", out,
+        "--poses", poses, "--fps", 10, *TINY, "--steps", 2, "--log-every", 1,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    cosines = [float(r["pose_cosine"]) for r in _steps(out)]
+    assert len(cosines) == 2 and all(-1 <= c <= 1 for c in cosines)
+    finetune(files, tmp_path / "speed", "--steps", 1, "--log-every", 1)
+    assert [r["pose_cosine"] for r in _steps(tmp_path / "speed")] == [""]
