@@ -202,3 +202,19 @@ def test_poses_give_the_pose_cosine_column(files, tmp_path):
     assert len(cosines) == 2 and all(-1 <= c <= 1 for c in cosines)
     finetune(files, tmp_path / "speed", "--steps", 1, "--log-every", 1)
     assert [r["pose_cosine"] for r in _steps(tmp_path / "speed")] == [""]
+
+
+def test_a_depthnet_unsup_checkpoint_keeps_its_posenet(files, tmp_path):
+    ckpt = _checkpoint(tmp_path / "unsup.pt", "depthnet-unsup-tiny")
+    out = tmp_path / "ft"
+    proc = invoke_main(
+        cli.main, "finetune", "--ckpt", ckpt, "--input", files["folder"], "--out", out,
+        *MOTION, *TINY, "--steps", 1, "--pose-warmup", 1,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    best = torch.load(out / "checkpoints" / "best.pt", weights_only=True)
+    assert best["model_name"] == "depthnet-unsup-tiny" and "pose" not in best
+    source = _weights(ckpt)
+    pose = [k for k in source if k.startswith("pose.")]
+    assert pose and any(not torch.equal(source[k], best["model"][k]) for k in pose)
+    assert all(torch.equal(source[k], best["model"][k]) for k in source if k.startswith("depth."))
