@@ -40,7 +40,7 @@ from stillbox_gen.conventions import NOMINAL_SHIFT
 
 from ..core import runfolder
 from ..core.checkpoint import first_line, load_checkpoint
-from ..core.config import default
+from ..core.config import MAX_SEED, default
 from ..core.data import EpochBatches, EpochSampler
 from ..core.errors import FieldError, Ref
 from ..core.posenet import DepthPoseNet
@@ -111,7 +111,7 @@ def check_numbers(o: FinetuneOptions) -> None:
         ("pose_warmup", o.pose_warmup is None or o.pose_warmup >= 0, "must be 0 or more"),
         ("lr", o.lr is None or (o.lr > 0 and math.isfinite(o.lr)), "must be a positive number"),
         ("batch_size", o.batch_size is None or o.batch_size >= 1, "must be at least 1"),
-        ("seed", o.seed is None or o.seed >= 0, "must be 0 or more"),
+        ("seed", o.seed is None or 0 <= o.seed <= MAX_SEED, f"must be from 0 to {MAX_SEED}"),
         ("threads", o.threads >= 0, "must be 0 (torch default) or more"),
         ("ckpt_every", o.ckpt_every >= 0, "must be 0 (at the end only) or more"),
         ("log_every", o.log_every >= 1, "must be at least 1"),
