@@ -16,6 +16,8 @@ from test_bench_hardening import assert_bench_error
 from test_infer import SIZE, _checkpoint, _frames, _write_folder
 
 from benchmark import cli
+from benchmark.core import registry
+from benchmark.core.checkpoint import load_checkpoint, load_weights
 from benchmark.core.posenet import DepthPoseNet
 from benchmark.unsupervised.finetune import FinetuneOptions, Finetuner
 from benchmark.unsupervised.footage_sequences import frame_stride, moving_stretches, prepared_K
@@ -85,6 +87,8 @@ def test_finetune_writes_a_depth_checkpoint_that_infer_loads(files, tmp_path):
     source = _weights(files["ckpt"])
     changed = [k for k in source if not torch.equal(source[k], best["model"][k])]
     assert changed  # the joint steps moved the DepthNet
+    ck = load_checkpoint(out / "checkpoints" / "best.pt", "ckpt")  # eval's loading
+    load_weights(registry.build_model(ck["model_name"]), ck, "ckpt", "best.pt", ck["model_name"])
     model, scale, info = depth_network(out / "checkpoints" / "best.pt")  # infer's loader
     assert scale.d0 == 0.3 and info["model_name"] == "depthnet-tiny"
     depth = tmp_path / "depth"
@@ -149,6 +153,7 @@ def test_resume_continues_as_one_run_and_keeps_its_options(files, tmp_path):
         ({"--batch-size": 10}, "--batch-size"),
         ({"--pose-warmup": -1}, "--pose-warmup"),
         ({"--steps": 0}, "--steps"),
+        ({"--smooth-weight": -1}, "--smooth-weight"),
     ],
 )
 def test_bad_input_is_one_line_and_writes_nothing(files, tmp_path, change, flag):

@@ -25,6 +25,7 @@ from ..unsupervised import finetune as finetune_lib
 from ..unsupervised import toy as study
 from ..unsupervised import toy_plots
 from ..unsupervised.reprojection import SMOOTH_LOSSES
+from ..unsupervised.training import smooth_settings
 from .options import DEVICE_OPTION, UserError, int_option, torch_device, user_error
 from .video import footage_options, size_option
 
@@ -284,6 +285,13 @@ def toy_cmd(
     is_flag=True,
     help="Drop the pixels the occlusion module finds hidden from the photometric loss "
     "(thesis 4.5.6).",
+)
+@click.option(
+    "--smooth-weight",
+    type=float,
+    help="λ of the smooth loss (eq. 5.5; 0: photometric loss alone).  [default: depthnet-unsup's, "
+    f"{smooth_settings(None, None, False)[0]:g}; {smooth_settings(None, None, True)[0]:g} with "
+    "--occlusion]",
 )
 @click.option("--seed", type=int, help="Seed of PoseNet's initialisation and the sampling.  "
               "[default: 0]")  # fmt: skip

@@ -64,7 +64,7 @@ POSE_WARMUP = 200
 #: Options a resumed fine-tuning keeps from its checkpoint (given again, they must be equal)
 RESUMED = (
     *("ckpt", "input", "speed", "poses", "fps", "fov", "focal", "res", "train_fov"),
-    *("lr", "batch_size", "pose_warmup", "occlusion", "seed"),
+    *("lr", "batch_size", "pose_warmup", "occlusion", "smooth_weight", "seed"),
 )
 PHASES = ("pose-warmup", "joint")
 
@@ -89,6 +89,7 @@ class FinetuneOptions:
     lr: float | None = None
     batch_size: int | None = None
     occlusion: bool = False
+    smooth_weight: float | None = None
     seed: int | None = None
     resume: bool = False
     threads: int = 0
@@ -111,6 +112,11 @@ def check_numbers(o: FinetuneOptions) -> None:
         ("pose_warmup", o.pose_warmup is None or o.pose_warmup >= 0, "must be 0 or more"),
         ("lr", o.lr is None or (o.lr > 0 and math.isfinite(o.lr)), "must be a positive number"),
         ("batch_size", o.batch_size is None or o.batch_size >= 1, "must be at least 1"),
+        (
+            "smooth_weight",
+            o.smooth_weight is None or (o.smooth_weight >= 0 and math.isfinite(o.smooth_weight)),
+            "must be 0 or more",
+        ),  # fmt: skip
         ("seed", o.seed is None or 0 <= o.seed <= MAX_SEED, f"must be from 0 to {MAX_SEED}"),
         ("threads", o.threads >= 0, "must be 0 (torch default) or more"),
         ("ckpt_every", o.ckpt_every >= 0, "must be 0 (at the end only) or more"),
@@ -230,7 +236,7 @@ class Finetuner:
             self.own_pose) else model  # fmt: skip
         self.net = net.to(self.device)
         self.opt = make_optimizer(self.net.parameters(), replace(UNSUPERVISED_RECIPE, lr=o.lr))
-        lam, kappa = smooth_settings(None, None, o.occlusion)
+        lam, kappa = smooth_settings(o.smooth_weight, None, o.occlusion)
         weights = UNSUPERVISED_RECIPE.loss_weights
         self.step = PhotometricStep(
             self.net, self.opt, self.device, weights, self.d0, lam, kappa, o.occlusion
