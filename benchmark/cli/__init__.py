@@ -34,6 +34,7 @@ def cli() -> None:
     stillbox-bench infer --ckpt C --input flight.mp4 --speed 9 --out out/  depth of a video
     stillbox-bench eval-multishift --ckpt C --data SEQ --out R  shift strategies on sequences
     stillbox-bench toy --out runs/toy                        thesis 4.6: losses without ground truth
+    stillbox-bench finetune --ckpt C --input flight.mp4 --speed 9 --out runs/ft  your footage
     stillbox-bench fly --depth oracle --out runs/fly-oracle  thesis 6.5: closed-loop flight
     stillbox-bench fly-compare runs/fly-*                    one table of fly runs
     stillbox-bench list                                      registered models
@@ -50,6 +51,7 @@ for command in (
     video.infer,
     video.eval_multishift,
     unsupervised.toy_cmd,
+    unsupervised.finetune_cmd,
     flight.fly_cmd,
     flight.fly_compare,
 ):

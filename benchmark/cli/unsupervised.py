@@ -1,7 +1,9 @@
 """``stillbox-bench toy``: the toy-problem study of thesis §4.6 (Table 4.1, Figs. 4.13-4.18),
 :mod:`benchmark.unsupervised.toy` run from one command, writing results.json, table.md and the
-figures; ``--resume`` goes on from the last finished run of an interrupted study
-(:mod:`benchmark.unsupervised.toy_runs`). User mistakes raise
+figures, ``--resume`` going on from the last finished run of an interrupted study
+(:mod:`benchmark.unsupervised.toy_runs`); ``stillbox-bench finetune``: a depth network
+fine-tuned on a user's footage without depth (thesis §5.4.5,
+:mod:`benchmark.unsupervised.finetune`). User mistakes raise
 ``UserError`` (exit code 2), which ``stillbox-bench`` prints as one line.
 """
 
@@ -19,10 +21,15 @@ from stillbox_gen.arguments import check_out_folder
 from stillbox_gen.formats import atomic_write_text
 
 from ..core import runfolder
+from ..core.config import default
+from ..core.registry import UNSUPERVISED_RECIPE
+from ..unsupervised import finetune as finetune_lib
 from ..unsupervised import toy as study
 from ..unsupervised import toy_plots, toy_runs
 from ..unsupervised.reprojection import SMOOTH_LOSSES
-from .options import DEVICE_OPTION, UserError, torch_device, user_error
+from ..unsupervised.training import smooth_settings
+from .options import DEVICE_OPTION, UserError, int_option, torch_device, user_error
+from .video import footage_options, size_option
 
 RESULTS_JSON = "results.json"
 TABLE_MD = "table.md"
@@ -298,3 +305,89 @@ def _load_or_start(
         return {}
     except (ValueError, OSError) as e:
         raise UserError(f"--out: {e}") from None
+
+
+@click.command("finetune")
+@click.option(
+    "--ckpt",
+    type=click.Path(path_type=Path),
+    help="Checkpoint of a depth network written by 'run' (e.g. depthnet's best.pt).",
+)
+@click.option(
+    "--input",
+    "input_",
+    type=click.Path(path_type=Path),
+    help="Stabilised video file, or folder of frames (png/jpg/bmp/tif, in name order).",
+)
+@click.option(
+    "--out",
+    type=click.Path(path_type=Path),
+    required=True,
+    help="Run folder; checkpoints/best.pt is the fine-tuned depth network.",
+)
+@footage_options
+@int_option("--steps", finetune_lib.STEPS, "Optimiser steps in all (the warm-up's included).")
+@click.option(
+    "--pose-warmup",
+    type=int,
+    help="First steps with the DepthNet frozen, PoseNet alone learning (a random PoseNet's "
+    f"wrong poses would push the depth the wrong way).  [default: {finetune_lib.POSE_WARMUP}]",
+)
+@click.option(
+    "--lr",
+    type=float,
+    help=f"Adam's learning rate.  [default: {UNSUPERVISED_RECIPE.lr:g}, the unsupervised recipe's]",
+)
+@click.option(
+    "--batch-size",
+    type=int,
+    help=f"Sequences per step.  [default: {UNSUPERVISED_RECIPE.batch_size}]",
+)
+@click.option(
+    "--occlusion",
+    is_flag=True,
+    help="Drop the pixels the occlusion module finds hidden from the photometric loss "
+    "(thesis 4.5.6).",
+)
+@click.option(
+    "--smooth-weight",
+    type=float,
+    help="λ of the smooth loss (eq. 5.5; 0: photometric loss alone).  [default: depthnet-unsup's, "
+    f"{smooth_settings(None, None, False)[0]:g}; {smooth_settings(None, None, True)[0]:g} with "
+    "--occlusion]",
+)
+@click.option("--seed", type=int, help="Seed of PoseNet's initialisation and the sampling.  "
+              "[default: 0]")  # fmt: skip
+@click.option(
+    "--resume",
+    is_flag=True,
+    help="Continue the fine-tuning in --out from checkpoints/last.pt (its options are kept).",
+)
+@click.option("--threads", type=int, default=0, show_default=True,
+              help="Torch CPU threads (0 = torch default).")  # fmt: skip
+@DEVICE_OPTION
+@int_option("--ckpt-every", default("ckpt_every"), "Steps between checkpoints.")
+@int_option("--log-every", default("log_every"), "Steps between steps.csv rows.")
+@click.option("--quiet", is_flag=True, help="No progress bars.")
+def finetune_cmd(input_: Path | None, res: str | None, out: Path, resume: bool, **o) -> None:
+    """Fine-tune a depth network on your own stabilised footage, without depth (thesis 5.4.5).
+
+    The network learns from sequences of 5 frames with the photometric loss of chapter 5 and a
+    fresh PoseNet (first alone: --pose-warmup); the footage, its motion and the camera are read
+    as 'infer' reads them. checkpoints/best.pt loads in 'infer' and 'eval'.
+    """
+    from ..unsupervised.finetune import FinetuneOptions, describe, finetune
+
+    check_out_folder(out, error=UserError)
+    last = runfolder.checkpoint_path(out, "last")
+    if resume and not last.is_file():
+        raise UserError("--resume: give the --out folder of an earlier finetune (with "
+                        "checkpoints/last.pt)")  # fmt: skip
+    if not resume and last.exists():
+        raise UserError(f"--out: '{out}' already holds a run; add --resume or choose another --out")
+    opts = FinetuneOptions(out=out, input=input_, res=size_option(res), resume=resume, **o)
+    try:
+        summary = finetune(opts)
+    except ValueError as e:
+        raise user_error(e) from None
+    click.echo(describe(summary))

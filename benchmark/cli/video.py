@@ -23,7 +23,42 @@ BETA_MEAN_OPTION = click.option(
 )
 
 
-def _size_option(value: str | None) -> tuple[int, int] | None:
+#: the options of the footage, its motion and its camera, shared by infer and finetune (in
+#: this order): --speed, --poses, --fps, --fov, --focal, --res, --train-fov
+FOOTAGE_OPTIONS = (
+    click.option("--speed", type=float, help="Constant camera speed, m/s (or --poses)."),
+    click.option(
+        "--poses",
+        type=click.Path(path_type=Path),
+        help="CSV, one row per frame: x,y,z (m) or vx,vy,vz (m/s), optional t (s).",
+    ),
+    click.option("--fps", type=float, help="Frames per second.  [default: the video's]"),
+    click.option(
+        "--fov",
+        type=float,
+        help="Horizontal field of view of the video, degrees.  [default: the training camera's]",
+    ),  # fmt: skip
+    click.option(
+        "--focal", type=float, help="Focal length of the video, pixels (instead of --fov)."
+    ),
+    click.option("--res", help="Network input WxH, multiples of 64.  [default: the training size]"),
+    click.option(
+        "--train-fov",
+        type=float,
+        help="Horizontal FOV (degrees) of the training camera, for checkpoints that record none; "
+        "needs --res.",
+    ),
+)
+
+
+def footage_options(function):
+    """Decorate a command with FOOTAGE_OPTIONS (``--res`` comes as text: :func:`size_option`)."""
+    for option in reversed(FOOTAGE_OPTIONS):
+        function = option(function)
+    return function
+
+
+def size_option(value: str | None) -> tuple[int, int] | None:
     """--res "WxH" or "N" -> (W, H) pixels (UserError naming --res)."""
     if value is None:
         return None
@@ -53,23 +88,7 @@ def _size_option(value: str | None) -> tuple[int, int] | None:
     required=True,
     help="Output folder (new or empty): depth/, depth_png/, preview.mp4, frames.csv, summary.json.",
 )
-@click.option("--speed", type=float, help="Constant camera speed, m/s (or --poses).")
-@click.option(
-    "--poses",
-    type=click.Path(path_type=Path),
-    help="CSV, one row per frame: x,y,z (m) or vx,vy,vz (m/s), optional t (s).",
-)
-@click.option("--fps", type=float, help="Frames per second.  [default: the video's]")
-@click.option("--fov", type=float, help="Horizontal field of view of the video, degrees.  "
-              "[default: the training camera's]")  # fmt: skip
-@click.option("--focal", type=float, help="Focal length of the video, pixels (instead of --fov).")
-@click.option("--res", help="Network input WxH, multiples of 64.  [default: the training size]")
-@click.option(
-    "--train-fov",
-    type=float,
-    help="Horizontal FOV (degrees) of the training camera, for checkpoints that record none; "
-    "needs --res.",
-)
+@footage_options
 @int_option("--shifts", 1, "Frame pairs per frame: depth clusters of thesis 6.3 (1..4).")
 @click.option("--fixed-shift", type=int, help="Always this frame shift (no adaptation).")
 @click.option(
@@ -111,7 +130,7 @@ def infer(input_: Path, res: str | None, **o) -> None:
     from ..video.infer import InferOptions, describe, prepare
     from ..video.infer import run as run_inference
 
-    opts = InferOptions(input=input_, res=_size_option(res), **o)
+    opts = InferOptions(input=input_, res=size_option(res), **o)
     try:
         job = prepare(opts)
     except ValueError as e:

@@ -111,13 +111,18 @@ def start_flat(net: DepthNet, depth: float) -> None:
 class DepthPoseNet(nn.Module):
     """DepthNet + PoseNet trained together from video (thesis Fig. 5.1); ``forward`` is the
     DepthNet's (a pair ``(B, 6, H, W)`` -> its multi-scale depth list, metres at the nominal
-    displacement). The DepthNet starts flat at :data:`INITIAL_DEPTH` (:func:`start_flat`)."""
+    displacement). The DepthNet starts flat at :data:`INITIAL_DEPTH` (:func:`start_flat`), or
+    is ``depth``, a trained depth network kept as it is (``finetune``: a supervised DepthNet with
+    a fresh PoseNet of its ``width``)."""
 
-    def __init__(self, frames: int, width: float = 1.0, dof: int = 3):
+    def __init__(
+        self, frames: int, width: float = 1.0, dof: int = 3, depth: nn.Module | None = None
+    ):
         super().__init__()
-        self.depth = DepthNet(width=width)
+        self.depth = DepthNet(width=width) if depth is None else depth
         self.pose = PoseNet(frames, dof, width)
-        start_flat(self.depth, INITIAL_DEPTH)
+        if depth is None:
+            start_flat(self.depth, INITIAL_DEPTH)
         self.min_multiple = self.depth.min_multiple
         self.frames = frames
 

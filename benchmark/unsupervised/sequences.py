@@ -19,7 +19,11 @@ from ..core.data import FrameStore
 
 class SequenceDataset:
     """Windows of ``length`` frames of a FrameStore's scenes, read a batch at a time
-    (:meth:`batch`; the trainer's PairBatches and EpochBatches use it as a PairDataset)."""
+    (:meth:`batch`; the trainer's PairBatches and EpochBatches use it as a PairDataset).
+    ``store`` may be any object with FrameStore's ``scenes`` (each with ``rgb`` (one entry a
+    frame), ``K``, ``translation(i, j)`` and ``index``), ``rgb(k, f)``, ``height`` and
+    ``width``: ``finetune`` passes the moving stretches of a user's footage
+    (benchmark.unsupervised.finetune.FootageStore)."""
 
     def __init__(self, store: FrameStore, length: int, seed: int = 0):
         self.store, self.length, self.seed = store, length, seed

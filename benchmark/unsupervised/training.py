@@ -220,12 +220,16 @@ class PhotometricStep:
             K.repeat_interleave(refs, 0),
         )
 
-    def __call__(self, batch: dict) -> torch.Tensor:
-        loss = self.losses(batch)["loss"]
+    def update(self, batch: dict) -> dict[str, torch.Tensor]:
+        """One optimiser step; returns :meth:`losses`' terms (before the step)."""
+        terms = self.losses(batch)
         self.opt.zero_grad(set_to_none=True)
-        loss.backward()
+        terms["loss"].backward()
         self.opt.step()
-        return loss
+        return terms
+
+    def __call__(self, batch: dict) -> torch.Tensor:
+        return self.update(batch)["loss"]
 
 
 def video_training(cfg, net, opt, device, store, d0: float, autocast=None):

@@ -108,9 +108,9 @@ def _positive(name: str, value: float | None) -> None:
         raise FieldError(name, f"must be a positive number, got {value}")
 
 
-def check_options(o: InferOptions) -> None:
-    """The numeric options and ``out`` (FieldError naming the InferOptions field); reads no
-    file."""
+def check_options(o: InferOptions, out: bool = True) -> None:
+    """The numeric options and (``out``) the ``out`` folder (FieldError naming the InferOptions
+    field); reads no file."""
     if (o.speed is None) == (o.poses is None):
         raise FieldError(
             "speed", "give either ", Ref("speed"), " M/S or ", Ref("poses"), " CSV (exactly one)"
@@ -137,7 +137,7 @@ def check_options(o: InferOptions) -> None:
         raise FieldError("beta_mean", f"must be in ({BETA_MIN}, {BETA_MAX}), got {o.beta_mean}")
     if o.train_fov is not None and o.res is None:
         raise FieldError("train_fov", "give ", Ref("res"), " WxH too (the training frame size)")
-    if o.out.exists() and (not o.out.is_dir() or any(o.out.iterdir())):
+    if out and o.out.exists() and (not o.out.is_dir() or any(o.out.iterdir())):
         raise FieldError("out", f"'{o.out}' exists and is not an empty folder")
 
 
@@ -207,12 +207,12 @@ def _check_fixed_shift(o: InferOptions, frames: int) -> None:
         raise FieldError("fixed_shift", f"{shift} is above ", Ref("max_shift"), f" {o.max_shift}")
 
 
-def prepare(o: InferOptions) -> Job:
-    """Check every option and input, load the network: a one-line ValueError (FieldError naming
-    the InferOptions field). Nothing is written."""
+def prepare(o: InferOptions, out: bool = True) -> Job:
+    """Check every option and input (the ``out`` folder too when ``out``), load the network: a
+    one-line ValueError (FieldError naming the InferOptions field). Nothing is written."""
     from ..core.device import resolve_device
 
-    check_options(o)
+    check_options(o, out)
     device = resolve_device(o.device)
     camera = None
     if o.train_fov is not None:

@@ -1,0 +1,432 @@
+"""``stillbox-bench finetune``: a trained depth network fine-tuned without depth on a user's own
+stabilised footage (thesis §5.4.5), with the photometric training of chapter 5.
+
+The footage, its motion and the camera geometry are handled as ``infer`` handles them
+(benchmark.video.infer.prepare: the same options, checks and crop), its moving stretches become
+frame sequences (benchmark.unsupervised.footage_sequences, SequenceDataset), and the network is
+the checkpoint's depth network with a fresh PoseNet (core.posenet.DepthPoseNet; a
+``depthnet-unsup`` checkpoint keeps its own PoseNet), trained by PhotometricStep (eq. 5.5) with
+d0 = the checkpoint's nominal displacement in eq. 5.2, so the network keeps answering in its
+supervised convention.
+
+Pose warm-up (``pose_warmup`` steps, :func:`freeze_depth`): the DepthNet is frozen (no gradient,
+BatchNorm in eval mode: exactly the checkpoint's function) and only PoseNet learns; then both.
+Measured in an earlier session: joint training from a good supervised DepthNet with a random
+PoseNet degraded the DepthNet, as the first poses are wrong and the photometric loss then pushes
+the depth the wrong way; with the depth right, the loss's gradient points PoseNet the right way.
+:data:`POSE_WARMUP` is a guess, not a measurement (see its comment).
+
+Run folder (core.runfolder, as ``run``): ``config.json``, ``environment.json``, ``steps.csv``
+(loss, photometric and smooth terms, phase, and with ``--poses`` the cosine between PoseNet's
+reference translation and the known one), ``tb/``, ``checkpoints/last.pt`` (the training state:
+the depth network as ``model``, PoseNet as ``pose``, optimiser and counters) and
+``checkpoints/best.pt``: the depth network alone, a plain depth checkpoint (``infer``, ``eval``,
+``run --pretrained``). Without ground truth there is nothing to choose by: best.pt is the
+network of the last checkpoint. Both are written at every ``ckpt_every`` steps and at the end.
+"""
+
+from __future__ import annotations
+
+import math
+import signal
+import time
+from dataclasses import asdict, dataclass, fields, replace
+from pathlib import Path
+
+import torch
+from tqdm import tqdm
+
+from stillbox_gen.conventions import NOMINAL_SHIFT
+
+from ..core import runfolder
+from ..core.checkpoint import first_line, load_checkpoint
+from ..core.config import MAX_SEED, default
+from ..core.data import EpochBatches, EpochSampler
+from ..core.errors import FieldError, Ref
+from ..core.posenet import DepthPoseNet
+from ..core.registry import UNSUPERVISED_RECIPE
+from ..supervised.train import NonFiniteLoss, environment, make_optimizer
+from ..video.infer import InferOptions, prepare
+from .footage_sequences import describe_stretches, footage_store, frame_stride
+from .sequences import SequenceDataset
+from .training import PhotometricStep, smooth_settings
+
+#: Optimiser steps of a fine-tuning: 5 passes over a 1-minute 30 fps flight (1,800 frames) at
+#: batch 32, about 1 CPU-hour at 64 px here (unsupervised steps: ~10 samples per CPU-second)
+STEPS = 1000
+#: Steps of the pose warm-up (DepthNet frozen). A guess to be measured (the proof experiment in
+#: the README): Adam moves every PoseNet weight by about lr = 2e-4 a step, all 256 inputs of its
+#: prediction layer together, so a constant flight direction (a forward flight) is within reach in
+#: tens of steps; 200 leaves room for 5-frame windows whose motion varies, and is a fifth of STEPS.
+#: (Joint training from a flat DepthNet had not found StillBox's random directions in 120 steps;
+#: there the depth was wrong too.)
+POSE_WARMUP = 200
+#: Options a resumed fine-tuning keeps from its checkpoint (given again, they must be equal)
+RESUMED = (
+    *("ckpt", "input", "speed", "poses", "fps", "fov", "focal", "res", "train_fov"),
+    *("lr", "batch_size", "pose_warmup", "occlusion", "smooth_weight", "seed"),
+)
+PHASES = ("pose-warmup", "joint")
+
+
+@dataclass
+class FinetuneOptions:
+    """The command line's options (units as ``infer``'s: m, m/s, frames/s, degrees, pixels).
+    None: the default (a new run) or the resumed run's value (``resume``)."""
+
+    out: Path
+    ckpt: Path | None = None
+    input: Path | None = None
+    speed: float | None = None
+    poses: Path | None = None
+    fps: float | None = None
+    fov: float | None = None
+    focal: float | None = None
+    res: tuple[int, int] | None = None
+    train_fov: float | None = None
+    steps: int = STEPS
+    pose_warmup: int | None = None
+    lr: float | None = None
+    batch_size: int | None = None
+    occlusion: bool = False
+    smooth_weight: float | None = None
+    seed: int | None = None
+    resume: bool = False
+    threads: int = 0
+    device: str = "auto"
+    ckpt_every: int = default("ckpt_every")
+    log_every: int = default("log_every")
+    quiet: bool = False
+
+
+def defaults() -> dict:
+    """The values of a new run's options left at None."""
+    r = UNSUPERVISED_RECIPE
+    return {"pose_warmup": POSE_WARMUP, "lr": r.lr, "batch_size": r.batch_size, "seed": 0}
+
+
+def check_numbers(o: FinetuneOptions) -> None:
+    """FieldError naming the first option out of its range (reads no file)."""
+    rules = (
+        ("steps", o.steps is not None and o.steps >= 1, "must be at least 1"),
+        ("pose_warmup", o.pose_warmup is None or o.pose_warmup >= 0, "must be 0 or more"),
+        ("lr", o.lr is None or (o.lr > 0 and math.isfinite(o.lr)), "must be a positive number"),
+        ("batch_size", o.batch_size is None or o.batch_size >= 1, "must be at least 1"),
+        (
+            "smooth_weight",
+            o.smooth_weight is None or (o.smooth_weight >= 0 and math.isfinite(o.smooth_weight)),
+            "must be 0 or more",
+        ),  # fmt: skip
+        ("seed", o.seed is None or 0 <= o.seed <= MAX_SEED, f"must be from 0 to {MAX_SEED}"),
+        ("threads", o.threads >= 0, "must be 0 (torch default) or more"),
+        ("ckpt_every", o.ckpt_every >= 0, "must be 0 (at the end only) or more"),
+        ("log_every", o.log_every >= 1, "must be at least 1"),
+    )
+    for name, ok, rule in rules:
+        if not ok:
+            raise FieldError(name, f"{rule}, got {getattr(o, name)}")
+
+
+def _plain(value):
+    """An option as config.json holds it (paths as text, tuples as lists)."""
+    if isinstance(value, Path):
+        return str(value)
+    return list(value) if isinstance(value, tuple) else value
+
+
+def resumed_options(o: FinetuneOptions, recorded: dict, where: Path) -> FinetuneOptions:
+    """``o`` with the RESUMED options the run was started with; one given with another value
+    is a FieldError naming it."""
+    kept = {}
+    for name in RESUMED:
+        given, then = getattr(o, name), recorded.get(name)
+        if given is None or (name == "occlusion" and given is False):
+            kept[name] = then
+        elif _plain(given) != then:
+            raise FieldError(
+                name,
+                f"the run in {where} was fine-tuned with {then}, not {_plain(given)}; a resumed "
+                "run keeps its settings (leave ", Ref(name), " out, or start a new ", Ref("out"),
+                ")",
+            )  # fmt: skip
+    types = {"ckpt": Path, "input": Path, "poses": Path, "res": tuple}
+    kept = {k: (types[k](v) if k in types and v is not None else v) for k, v in kept.items()}
+    return replace(o, **kept)
+
+
+def freeze_depth(net: DepthPoseNet, frozen: bool) -> None:
+    """The pose warm-up's switch: ``frozen``, the DepthNet gets no gradient and its BatchNorm
+    uses (and keeps) its running statistics, so its weights and buffers do not change and it
+    answers as the checkpoint; else it trains (call after ``net.train()``)."""
+    net.depth.requires_grad_(not frozen)
+    net.depth.train(not frozen and net.training)
+
+
+def pose_cosine(batch: dict, translations: torch.Tensor) -> float:
+    """Mean cosine between PoseNet's reference translation (``translations`` (B, N, 3), the
+    normalised ones PhotometricStep used: X_r = X_t + τ_r) and the known one, −(p_r − p_t) in the
+    axes of ``--poses`` (meaningful when they are camera axes: x right, y down, z forward)."""
+    rows = torch.arange(len(translations))
+    ref = batch["reference_index"]
+    known = -batch["translation"][rows, ref].to(translations.device)
+    cos = torch.nn.functional.cosine_similarity(translations[rows, ref].detach(), known, dim=1)
+    return float(cos.mean())
+
+
+class Finetuner:
+    """A fine-tuning checked and set up (:meth:`setup`, nothing written), then run (:meth:`fit`,
+    writing the run folder)."""
+
+    def __init__(self, o: FinetuneOptions):
+        self.o = o
+        self.run = Path(o.out)
+
+    def log(self, msg: str) -> None:
+        if not self.o.quiet:
+            tqdm.write(msg)
+
+    def setup(self) -> None:
+        """Every check and the whole footage read, then the network, optimiser and state (from
+        ``checkpoints/last.pt`` when resuming): ValueError of one line naming the option."""
+        o = self.o
+        check_numbers(o)
+        last = runfolder.checkpoint_path(self.run, "last")
+        resume = None
+        if o.resume:
+            resume = load_checkpoint(last, "resume")
+            if not all(k in resume for k in ("optimizer", "state", "config")):
+                raise FieldError("resume", "holds no fine-tuning state", where=f" {last}")
+            o = resumed_options(o, resume["config"], last)
+        for name in ("ckpt", "input"):
+            if getattr(o, name) is None:
+                raise FieldError(name, "missing: give it (or ", Ref("resume"), " a run)")
+        o = replace(o, **{k: v for k, v in defaults().items() if getattr(o, k) is None})
+        self.o = o
+        if o.threads > 0:
+            torch.set_num_threads(o.threads)
+        job = prepare(self._infer_options(last if resume else o.ckpt), out=False)
+        source = resume if resume is not None else load_checkpoint(o.ckpt, "ckpt")
+        self.job, self.d0, self.device = job, job.scale.d0, job.device
+        self.shift = int(source.get("shift", NOMINAL_SHIFT))
+        self.length = UNSUPERVISED_RECIPE.sequence_length
+        self.stride = frame_stride(job.positions, self.d0, self.shift)
+        self.store = footage_store(job, self.length, self.stride, not o.quiet)
+        self.data = SequenceDataset(self.store, self.length, o.seed)
+        self.steps_per_epoch = len(self.data) // o.batch_size
+        if self.steps_per_epoch == 0:
+            raise FieldError(
+                "batch_size", f"larger than the {len(self.data)} sequences of the footage",
+                where=f" {o.batch_size}",
+            )  # fmt: skip
+        self._network(resume, last)
+
+    def _infer_options(self, ckpt: Path) -> InferOptions:
+        o = self.o
+        same = ("input", "speed", "poses", "fps", "fov", "focal", "res", "train_fov", "device")
+        return InferOptions(
+            ckpt=ckpt, out=self.run, quiet=o.quiet, **{k: getattr(o, k) for k in same}
+        )
+
+    def _network(self, resume: dict | None, last: Path) -> None:
+        """The DepthPoseNet (a fresh PoseNet from ``seed``), optimiser, step and counters."""
+        o, model = self.o, self.job.model
+        torch.manual_seed(o.seed)
+        self.own_pose = not isinstance(model, DepthPoseNet)
+        net = DepthPoseNet(self.length, getattr(model, "width", 1.0), depth=model) if (
+            self.own_pose) else model  # fmt: skip
+        self.net = net.to(self.device)
+        self.opt = make_optimizer(self.net.parameters(), replace(UNSUPERVISED_RECIPE, lr=o.lr))
+        lam, kappa = smooth_settings(o.smooth_weight, None, o.occlusion)
+        weights = UNSUPERVISED_RECIPE.loss_weights
+        self.step = PhotometricStep(
+            self.net, self.opt, self.device, weights, self.d0, lam, kappa, o.occlusion
+        )
+        self.sampler = EpochSampler(len(self.data), o.seed)
+        self.state = {"epoch": 0, "step_in_epoch": 0, "global_step": 0}
+        if resume is None:
+            return
+        try:
+            if self.own_pose:
+                self.net.pose.load_state_dict(resume["pose"])
+            self.opt.load_state_dict(resume["optimizer"])
+            self.state.update(resume["state"])
+        except (KeyError, ValueError, TypeError, RuntimeError) as e:
+            raise FieldError(
+                "resume", f"its training state does not fit ({first_line(e)})", where=f" {last}"
+            ) from None
+
+    # ------------------------------------------------------------ the run folder
+
+    def config(self) -> dict:
+        """config.json: the options (resolved) and what was derived from them."""
+        options = {f.name: _plain(getattr(self.o, f.name)) for f in fields(self.o)}
+        job = self.job
+        return {
+            "command": "finetune",
+            **options,
+            "model_name": job.info["model_name"],
+            "nominal_displacement": self.d0,
+            "shift": self.shift,
+            "sequence_length": self.length,
+            "stride": self.stride,
+            "sequences": len(self.data),
+            "stretches": [len(s.rgb) for s in self.store.scenes],
+            "frames_in": job.source.count,
+            "input_size": list(job.size),
+            "crop": asdict(job.crop),
+            "K": self.store.scenes[0].K.tolist(),
+            "recipe": {k: _plain(v) for k, v in asdict(UNSUPERVISED_RECIPE).items()},
+        }
+
+    def save(self) -> None:
+        """checkpoints/last.pt (training state) and best.pt (the depth network alone)."""
+        depth = self.net.depth if self.own_pose else self.net
+        if not all(torch.isfinite(t).all() for t in self.net.state_dict().values()
+                   if t.is_floating_point()):  # fmt: skip
+            raise NonFiniteLoss(self._stop_text("the weights are not finite"))
+        info = self.job.info
+        plain = {
+            "model": depth.state_dict(),
+            "model_name": info["model_name"],
+            "nominal_displacement": self.d0,
+            "shift": self.shift,
+            "depth_range": [float(v) for v in info["depth_range"]],
+            "camera": {
+                "width": self.job.size[0],
+                "height": self.job.size[1],
+                "fov_deg": float(info["fov_deg"]),
+            },  # fmt: skip
+            "state": dict(self.state),
+            "config": self.config(),
+        }
+        full = {**plain, "optimizer": self.opt.state_dict()}
+        if self.own_pose:
+            full["pose"] = self.net.pose.state_dict()
+        runfolder.save_checkpoint(runfolder.checkpoint_path(self.run, "last"), full)
+        runfolder.save_checkpoint(runfolder.checkpoint_path(self.run, "best"), plain)
+
+    def _stop_text(self, what: str) -> str:
+        last = runfolder.checkpoint_path(self.run, "last")
+        kept = f"{last} is kept" if last.exists() else "no checkpoint was saved"
+        return (
+            f"fine-tuning stopped: {what} at step {self.state['global_step'] + 1}; try a smaller "
+            f"--lr (this run: {self.o.lr:g}); {kept}"
+        )
+
+    def _start_folder(self) -> None:
+        for p in runfolder.start_logs(self.run, self.o.resume, self.state["global_step"]):
+            self.log(f"removed {p}, left by an interrupted checkpoint write")
+        runfolder.write_config(self.run, self.config())
+        runfolder.write_environment(self.run, environment(self.device))
+        from torch.utils.tensorboard import SummaryWriter
+
+        self.tb = SummaryWriter(str(runfolder.tb_dir(self.run)))
+
+    # ------------------------------------------------------------ training
+
+    def fit(self) -> dict:
+        """Train to ``steps`` (Ctrl-C: stop at the next step boundary, saving both checkpoints,
+        then KeyboardInterrupt); returns the summary (:func:`describe`)."""
+        self._start_folder()
+        stop: list[bool] = []
+        previous = signal.signal(signal.SIGINT, lambda *_: stop.append(True))
+        start, first = time.perf_counter(), self.state["global_step"]
+        try:
+            losses = self._loop(stop)
+        finally:
+            signal.signal(signal.SIGINT, previous)
+            self.tb.close()
+        self.save()
+        if stop:
+            raise KeyboardInterrupt
+        return self.summary(losses, first, time.perf_counter() - start)
+
+    def _loop(self, stop: list) -> dict[str, list[float]]:
+        o, st = self.o, self.state
+        seen: dict[str, list[float]] = {p: [] for p in PHASES}
+        bar = tqdm(total=o.steps, initial=st["global_step"], unit="step", disable=o.quiet,
+                   desc="finetune", dynamic_ncols=True)  # fmt: skip
+        with bar:
+            while st["global_step"] < o.steps and not stop:
+                epoch = st["epoch"]
+                self.data.set_epoch(epoch)
+                self.sampler.set_epoch(epoch, skip=st["step_in_epoch"] * o.batch_size)
+                for _, indices in EpochBatches(self.sampler, o.batch_size):
+                    phase = self._one_step(self.data.batch(indices, epoch))
+                    seen[phase].append(self._last["loss"])
+                    bar.set_postfix(loss=f"{self._last['loss']:.3f}", phase=phase, refresh=False)
+                    bar.update(1)
+                    if st["global_step"] >= o.steps or stop:
+                        break
+                if st["step_in_epoch"] >= self.steps_per_epoch:
+                    st["epoch"] += 1
+                    st["step_in_epoch"] = 0
+        return seen
+
+    def _one_step(self, batch: dict) -> str:
+        """One optimiser step (DepthNet frozen during the warm-up), its log row and checkpoint;
+        returns its phase."""
+        o, st = self.o, self.state
+        warm = st["global_step"] < o.pose_warmup
+        self.net.train()
+        freeze_depth(self.net, warm)
+        terms = self.step.update(batch)
+        terms = {k: v.detach() for k, v in terms.items()}
+        loss = float(terms["loss"])
+        if not math.isfinite(loss):
+            raise NonFiniteLoss(self._stop_text(f"the loss is {loss}"))
+        st["global_step"] += 1
+        st["step_in_epoch"] += 1
+        phase = PHASES[0] if warm else PHASES[1]
+        row = {
+            "step": st["global_step"], "epoch": st["epoch"], "phase": phase, "loss": loss,
+            "photometric": float(terms["photometric"]), "smooth": float(terms["smooth"]),
+            "pose_cosine": pose_cosine(batch, terms["translations"]) if o.poses else "",
+            "lr": self.opt.param_groups[0]["lr"],
+        }  # fmt: skip
+        self._last = row
+        if st["global_step"] % o.log_every == 0:
+            runfolder.append_row(self.run, runfolder.STEPS_CSV, row)
+            for k in ("loss", "photometric", "smooth", "pose_cosine"):
+                if row[k] != "":
+                    self.tb.add_scalar(f"train/{k}", row[k], st["global_step"])
+        if o.ckpt_every and st["global_step"] % o.ckpt_every == 0:
+            self.save()
+        return phase
+
+    def summary(self, losses: dict[str, list[float]], first: int, seconds: float) -> dict:
+        """What the run did, for :func:`describe` (losses: this session's, per phase)."""
+        return {
+            "steps": self.state["global_step"],
+            "resumed_at": first,
+            "pose_warmup": min(self.o.pose_warmup, self.state["global_step"]),
+            "loss": {p: [v[0], v[-1]] for p, v in losses.items() if v},
+            "seconds": seconds,
+            "stretches": describe_stretches(self.store),
+            "stride": self.stride,
+            "sequences": len(self.data),
+            "best": str(runfolder.checkpoint_path(self.run, "best")),
+        }
+
+
+def describe(s: dict) -> str:
+    """The one-paragraph summary printed at the end."""
+    parts = [f"{p} loss {a:.4f} -> {b:.4f}" for p, (a, b) in s["loss"].items()]
+    since = f" (resumed at step {s['resumed_at']})" if s["resumed_at"] else ""
+    return (
+        f"Fine-tuned {s['steps']} steps{since}, the first {s['pose_warmup']} with the DepthNet "
+        f"frozen (pose warm-up), in {s['seconds'] / 60:.1f} min, on {s['sequences']} sequences "
+        f"of {s['stretches']} (one frame in {s['stride']} kept); {'; '.join(parts) or 'no step'}. "
+        f"The fine-tuned depth network: {s['best']} (use it with 'infer' or 'eval')."
+    )
+
+
+def finetune(o: FinetuneOptions) -> dict:
+    """Check, read, then fine-tune into ``o.out`` holding its lock (stillbox_gen.lock); returns
+    the summary. Every check is done before the run folder is written."""
+    from stillbox_gen.lock import folder_lock
+
+    with folder_lock(Path(o.out), "--out"):
+        tuner = Finetuner(o)
+        tuner.setup()
+        return tuner.fit()
