@@ -62,6 +62,9 @@ class FootageScene:
     """One moving stretch of the footage: ``rgb`` its frame indices in the footage, ``K`` the
     prepared frames' intrinsics, ``index`` its position among the stretches."""
 
+    #: fine-tuning reads stabilised footage (thesis §5.4.5): no rotation between frames
+    stabilised = True
+
     def __init__(self, index: int, frames: list[int], K: np.ndarray, positions: np.ndarray):
         self.index, self.rgb, self.K, self._positions = index, frames, K, positions
 
