@@ -823,13 +823,14 @@ def _check_rotation_speed_range(
         return
     _check_range(where, "camera.rotation_speed_range_deg", r, 0.0, 180.0)
     if c.rotation_speed_deg > 0:
-        key = "camera.rotation_speed_deg"
-        if key not in given:
-            key = "camera.rotation_speed_range_deg"
+        keys = ["camera.rotation_speed_range_deg", "camera.rotation_speed_deg"]
+        if keys[1] in given:  # blame the flag, not the preset it overrode
+            keys.reverse()
+        other = _show(getattr(c, keys[1].split(".")[1]))
         raise ConfigError(
-            f"{where(key)} camera.rotation_speed_deg ({c.rotation_speed_deg:g}, one speed for "
-            f"every scene) and camera.rotation_speed_range_deg ({_show(r)}, a speed drawn per "
-            "scene) exclude each other: set only one"
+            f"{where(keys[0])} excludes {keys[1]} = {other}: a constant rotation speed is "
+            "either the same for every scene (rotation_speed_deg) or drawn per scene "
+            "(rotation_speed_range_deg)"
         )
 
 
