@@ -179,6 +179,10 @@ class CameraConfig:
             note="preset",
         ),
     )
+    # [min, max] degrees per frame, or None: a rotation speed drawn per scene, uniform in it,
+    # constant over the scene, about a random axis (the rotating StillBox of thesis 5.3); it
+    # takes the place of rotation_speed_deg, which must then be 0.
+    rotation_speed_range_deg: tuple[float, float] | None = None
 
     def focal(self) -> float:
         if self.focal_px is not None:
@@ -381,7 +385,7 @@ class DatasetConfig:
 
 # Config keys written to dataset.json only when set (None = unset); from_dict takes their
 # absence as the default.
-OMITTED_AT_DEFAULT = ("camera.direction", "objects.fixed")
+OMITTED_AT_DEFAULT = ("camera.direction", "camera.rotation_speed_range_deg", "objects.fixed")
 
 SECTIONS = {
     "camera": CameraConfig,
@@ -718,6 +722,7 @@ def validate(
             raise ConfigError(
                 f"{where(f'camera.{key}')} must be >= 0 degrees, got {getattr(c, key)}"
             )
+    _check_rotation_speed_range(c, where, given or ())
     if o.count < 0:
         raise ConfigError(f"{where('objects.count')} must be >= 0, got {o.count}")
     bad = [k for k in o.kinds if k not in SHAPE_KINDS]
@@ -805,6 +810,27 @@ def validate(
         raise ConfigError(
             f"{where('split')} must be three non-negative shares summing to 1, "
             f"got {_show(cfg.split)}"
+        )
+
+
+def _check_rotation_speed_range(
+    c: CameraConfig, where: Callable[[str], str], given: Collection[str]
+) -> None:
+    """camera.rotation_speed_range_deg: [min, max] in [0, 180] degrees per frame (beyond 180 a
+    rotation looks like a smaller one the other way), and rotation_speed_deg left at 0."""
+    r = c.rotation_speed_range_deg
+    if r is None:
+        return
+    _check_range(where, "camera.rotation_speed_range_deg", r, 0.0, 180.0)
+    if c.rotation_speed_deg > 0:
+        keys = ["camera.rotation_speed_range_deg", "camera.rotation_speed_deg"]
+        if keys[1] in given:  # blame the flag, not the preset it overrode
+            keys.reverse()
+        other = _show(getattr(c, keys[1].split(".")[1]))
+        raise ConfigError(
+            f"{where(keys[0])} excludes {keys[1]} = {other}: a constant rotation speed is "
+            "either the same for every scene (rotation_speed_deg) or drawn per scene "
+            "(rotation_speed_range_deg)"
         )
 
 

@@ -17,7 +17,7 @@ import math
 import numpy as np
 
 from . import camera, photos, portable, shapes
-from .config import DatasetConfig, MaterialsConfig, is_plain_name
+from .config import CameraConfig, DatasetConfig, MaterialsConfig, is_plain_name
 from .errors import ConfigError
 from .record import BoxSpec, CameraSpec, LightSpec, MaterialSpec, PrimitiveSpec, SceneSpec
 
@@ -159,7 +159,19 @@ def sample_distance(rng: np.random.Generator, r: tuple[float, float], law: str) 
     return portable.cbrt(rng.uniform(lo, hi))
 
 
+def scene_rotation_speed_deg(rng: np.random.Generator, c: CameraConfig) -> float:
+    """The scene's constant rotation speed, degrees per frame: drawn uniformly in
+    ``rotation_speed_range_deg`` when it is set (one draw from ``rng``), else
+    ``rotation_speed_deg`` (no draw, so scenes without a range keep their random stream)."""
+    if c.rotation_speed_range_deg is None:
+        return c.rotation_speed_deg
+    return _uniform(rng, c.rotation_speed_range_deg)
+
+
 def sample_camera(rng: np.random.Generator, cfg: DatasetConfig) -> CameraSpec:
+    """The camera of a scene: a random orientation and direction and, when the camera rotates,
+    a spin about a random axis of frame 0 at a constant speed (scene_rotation_speed_deg) times
+    per-frame noise. Without noise the speed is the angle of the record's orientation[1]."""
     c = cfg.camera
     r0 = camera.random_rotation(rng) if c.random_orientation else np.eye(3)
     if c.direction is None:  # in the first frame's camera axes
@@ -169,12 +181,13 @@ def sample_camera(rng: np.random.Generator, cfg: DatasetConfig) -> CameraSpec:
     # portable.* products (not numpy's @): the same bits on every CPU
     speed = direction * c.displacement / c.time_step
     spin_axis = camera.random_unit_vector(rng)
-    rotating = c.rotation_noise_deg > 0 or c.rotation_speed_deg > 0
+    spin_deg = scene_rotation_speed_deg(rng, c)
+    rotating = c.rotation_noise_deg > 0 or spin_deg > 0 or c.rotation_speed_range_deg is not None
     poses, quats = [], []
     for i in range(c.frames):
         rel = np.eye(3)
         if rotating:
-            spin = spin_axis * math.radians(c.rotation_speed_deg) * i
+            spin = spin_axis * math.radians(spin_deg) * i
             noise = rng.normal(0.0, math.radians(c.rotation_noise_deg), size=3)
             if i == 0:  # the first frame defines the reference axes
                 noise[:] = 0.0

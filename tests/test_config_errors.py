@@ -130,6 +130,10 @@ def test_large_seeds_are_accepted():
         ("[render]\nsamples = 4.0", "render.samples must be an integer, got 4.0"),
         ('[render]\ndenoise = "no"', "render.denoise must be true or false, got 'no'"),
         ("[materials]\ntexture_ratio = [0.5]", "materials.texture_ratio must be a finite number"),
+        (
+            "[camera]\nrotation_speed_range_deg = 1.0",
+            "camera.rotation_speed_range_deg must be a list of 2 finite numbers, got 1.0",
+        ),
     ],
 )
 def test_preset_value_of_wrong_type_names_file_and_key(tmp_path, text, message):
@@ -159,6 +163,18 @@ def test_preset_value_of_wrong_type_names_file_and_key(tmp_path, text, message):
         ("[render]\nsamples = 0", "render.samples must be >= 1, got 0"),
         ("[materials]\nglossy_ratio = 2.0", "materials.glossy_ratio must be in [0, 1]"),
         ("[camera]\nrotation_noise_deg = -1.0", "camera.rotation_noise_deg must be >= 0"),
+        (
+            "[camera]\nrotation_speed_range_deg = [1.0, 0.5]",
+            "camera.rotation_speed_range_deg must be [min, max] with 0 <= min <= max <= 180",
+        ),
+        (
+            "[camera]\nrotation_speed_range_deg = [0.0, 181.0]",
+            "camera.rotation_speed_range_deg must be [min, max] with 0 <= min <= max <= 180",
+        ),
+        (
+            "[camera]\nrotation_speed_range_deg = [0.0, 1.0]\nrotation_speed_deg = 0.2",
+            "camera.rotation_speed_range_deg excludes camera.rotation_speed_deg = 0.2: ",
+        ),
         # beyond the limits (config.LIMITS): used to hang, exhaust memory or fail in the workers
         ("[camera]\nwidth = 3000000000", "camera.width must be at most 8,192 pixels"),
         ("[camera]\nheight = 8193", "camera.height must be at most 8,192 pixels, got 8,193"),
@@ -185,6 +201,9 @@ def test_flag_overriding_a_preset_value_is_named_as_the_flag(tmp_path):
         build("--preset", path, "--frames", 1)
     with pytest.raises(ConfigError, match=r"^--displacement: the camera path \(99.00 m\)"):
         build("--preset", path, "--displacement", 9)
+    spin = r"^--rotation-speed: excludes camera.rotation_speed_range_deg = \[0.0, 1.0\]: "
+    with pytest.raises(ConfigError, match=spin):
+        build("--preset", "stillbox-rotating", "--rotation-speed", 0.5)
 
 
 def test_valid_preset_file_still_loads(tmp_path):

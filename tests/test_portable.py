@@ -19,8 +19,9 @@ import pytest
 
 from stillbox_gen import camera, portable, shapes
 
-# Sampled in every variant: the default preset, the rotating one, and a config with every
-# camera feature (noise, spin, custom intrinsics, non-square frames), as the golden dataset.
+# Sampled in every variant: the default preset, the two rotating ones (unstabilised: spin and
+# noise; rotating: a speed drawn per scene), and a config with every camera feature (noise, spin,
+# custom intrinsics, non-square frames), as the golden dataset.
 SCRIPT = """
 import hashlib, json, math, sys
 import numpy as np
@@ -41,7 +42,8 @@ custom = config.replace(
             "rotation_noise_deg": 0.3, "rotation_speed_deg": 0.5},
 )
 records = []
-for cfg in (config.load_preset("stillbox"), config.load_preset("stillbox-unstabilised"), custom):
+presets = ("stillbox", "stillbox-unstabilised", "stillbox-rotating")
+for cfg in (*(config.load_preset(p) for p in presets), custom):
     records.append(writer.chunk_args(cfg.to_dict(), "stillbox-gen"))  # metadata.json's args
     for k in range(int(sys.argv[1])):
         spec = sample_scene(cfg, k).to_dict()
@@ -50,7 +52,7 @@ meshes = [shapes.mesh(kind, [2.0, 1.7, 1.3])[0].tobytes().hex() for kind in conf
 digest = hashlib.sha256((formats.canonical_json(records) + "".join(meshes)).encode())
 print(json.dumps({"records": digest.hexdigest()[:16], "canary": canary()}))
 """
-SCENES = 12  # per config; 36 scenes, about 4500 numbers written to records
+SCENES = 12  # per config: 48 scenes
 
 
 def _cpu_flags() -> set[str]:
