@@ -414,7 +414,7 @@ def test_resolution_parser_and_out_folder_check_are_shared_by_both_clis(tmp_path
         with pytest.raises(ConfigError, match=f"^--res: {words}"):
             arguments.parse_resolution(bad)
         with pytest.raises(bench_options.UserError, match=f"^--res: {words}"):
-            bench_video._size_option(bad)
+            bench_video.size_option(bad)
     file = tmp_path / "f"
     file.write_text("")
     arguments.check_out_folder(tmp_path)  # a folder, or a missing path, is fine
