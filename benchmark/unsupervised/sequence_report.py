@@ -126,26 +126,34 @@ def _cells(values) -> str:
     return " | ".join(f"{v:.3f}" for v in values)
 
 
+def occlusion(row: dict) -> str:
+    """The occlusion-module column: ✓, ✗, or "-" for the constant plane."""
+    if registry.MODELS[row["model"]].kind is registry.CONSTANT:
+        return "-"
+    return "✓" if row["occlusion"] else NONE
+
+
 def markdown(rows: list[dict], info: dict) -> str:
     """One table per orientation, each of our rows followed by the matching thesis row."""
+    scenes = f"{info['scenes']} scene{'s' if info['scenes'] != 1 else ''}"
     lines = [
         f"# Depth from {info['sequence_length']}-frame sequences (thesis §5.4.3-5.4.4) on "
         f"{info['data']}",
         "",
-        f"{info['split']} split: {info['scenes']} scenes, {rows[0]['sequences']} sequences "
+        f"{info['split']} split: {scenes}, {rows[0]['sequences']} sequences "
         f"({'rotating' if info['rotating'] else 'stabilised'} camera). Depth of each sequence's "
         f"last frame; DepthNet's pair: mean output closest to {info['pair_target_depth_m']:g} m, "
         "scaled by the measured displacement (P). " + info["averaging_rule"],
     ]
     head = "| method | model | training set | scale factor | supervision | occlusion | "
     for o in info["orientations"]:
-        lines += ["", f"## {HEADINGS[o]}", "", head + " | ".join(SHOWN) + " | pairs: shift:count |"]
+        lines += ["", f"## {HEADINGS[o]}", ""]
+        lines.append(head + " | ".join(SHOWN) + " | pair chosen (frames apart: count) |")
         lines.append("|" + "---|" * (6 + len(SHOWN) + 1))
         for r in (r for r in rows if r["orientation"] == o):
-            occ = "✓" if r["occlusion"] else NONE
             lines.append(
                 f"| {method(r)} | {r['model']} | {r['training_set']} | {r['scale']} | "
-                f"{supervision(r)} | {occ} | {_cells(r[k] for k in metrics.METRICS)} | "
+                f"{supervision(r)} | {occlusion(r)} | {_cells(r[k] for k in metrics.METRICS)} | "
                 f"{r['shifts_used']} |"
             )
             t = thesis_row(r)
@@ -162,11 +170,13 @@ def with_thesis(row: dict) -> dict:
     """A result row with its method, supervision and the thesis' numbers beside (``thesis_*``,
     None where no thesis row matches)."""
     t = thesis_row(row)
-    extra = {"method": method(row), "supervision": supervision(row),
-             "thesis_table": t.table if t else None}  # fmt: skip
+    first = ("orientation", "method", "model")
+    out = {"orientation": row["orientation"], "method": method(row), "model": row["model"]}
+    out.update((k, v) for k, v in row.items() if k not in first)
+    out.update(supervision=supervision(row), thesis_table=t.table if t else None)
     for k, name in enumerate(metrics.METRICS):
-        extra[f"thesis_{name}"] = t.values[k] if t else None
-    return {**extra, **row}
+        out[f"thesis_{name}"] = t.values[k] if t else None
+    return out
 
 
 def write_results(out: Path, rows: list[dict], info: dict) -> str:
