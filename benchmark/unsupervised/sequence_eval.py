@@ -34,6 +34,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from stillbox_gen.conventions import MAX_DEPTH
 from stillbox_gen.dataset import Dataset, Scene
 
 from ..core import metrics, registry
@@ -169,7 +170,7 @@ def load_model(path: Path, field: str = "ckpt") -> EvalModel:
     training_set = Path(str(data)).name if data else "?"
     return EvalModel(
         name, kind, net.eval(), float(ck["nominal_displacement"]),
-        registry.output_clamp(ck.get("depth_range", (0.0, metrics.MAX_DEPTH))),
+        registry.output_clamp(ck.get("depth_range", (0.0, MAX_DEPTH))),
         cfg.get("pose") if kind.target is registry.Target.VIDEO else None,
         bool(cfg.get("occlusion")),
         f"pretrained → {training_set}" if pretrained else training_set, str(path),
@@ -193,31 +194,42 @@ def predict(m: EvalModel, w: Window, device: torch.device) -> dict:
     """The last frame's depth (H, W) metres for each of ``m.scales`` (``{scale: depth}``), and
     ``shift``: the frames between the chosen reference and t (DepthNet; None otherwise)."""
     gt = torch.from_numpy(np.ascontiguousarray(w.depth)).to(device)
-    h, wd = gt.shape
     if m.net is None:  # the constant plane, at the ground truth's median
         median = median_scale(torch.ones_like(gt)[None], gt[None])[0]
         return {SCALE_GT: torch.full_like(gt, float(median)), "shift": None}
     seq = _normalised(w.frames, device)  # (N, 3, H, W)
-    n = len(seq)
-    sequence = seq.reshape(1, 3 * n, h, wd)
     if m.kind.scored_as is registry.Scoring.SCALE_FREE:
-        raw = m.net(torch.cat([seq[-1], seq[-1]])[None])[0].float()
-        poses = m.net.pose(sequence).float()
-        first = torch.from_numpy(w.position[0]).float().to(device)[None]
-        p = pose_scale(poses, torch.tensor([[0, n - 1]], device=device), first)
-        raw = _full(raw, h, wd)[None]
-        g = median_scale(raw, gt[None]).to(raw.dtype)
-        return {SCALE_P: raw[0] * p[0], SCALE_GT: raw[0] * g[0], "shift": None}
-    refs = torch.arange(n - 1, device=device)
+        return _scale_free(m, w, seq, gt)
+    return _depthnet(m, w, seq)
+
+
+def _scale_free(m: EvalModel, w: Window, seq: torch.Tensor, gt: torch.Tensor) -> dict:
+    """An SfmLearnerNet's depth of the last frame with the "P" scale (PoseNet's displacement
+    between the window's first and last frames against the measured one) and the "GT" one."""
+    n, _, h, wd = seq.shape
+    raw = _full(m.net(torch.cat([seq[-1], seq[-1]])[None])[0].float(), h, wd)[None]
+    poses = m.net.pose(seq.reshape(1, 3 * n, h, wd)).float()
+    first = torch.from_numpy(w.position[0]).float().to(seq.device)[None]  # metres from t
+    p = pose_scale(poses, torch.tensor([[0, n - 1]], device=seq.device), first)
+    g = median_scale(raw, gt[None]).to(raw.dtype)
+    return {SCALE_P: raw[0] * p[0], SCALE_GT: raw[0] * g[0], "shift": None}
+
+
+def _depthnet(m: EvalModel, w: Window, seq: torch.Tensor) -> dict:
+    """DepthNet's depth of the last frame from the pair (r, t) whose mean output is closest to
+    PAIR_TARGET_DEPTH, each reference stabilised first (:attr:`EvalModel.stabilise`), × ‖t_r‖/d0."""
+    n, _, h, wd = seq.shape
+    refs = torch.arange(n - 1, device=seq.device)
     pairs = torch.cat([seq[:-1], seq[-1:].expand(n - 1, -1, -1, -1)], 1)  # (N − 1, 6, H, W)
-    if m.stabilise != STABILISE_NONE and not (m.stabilise == STABILISE_KNOWN and w.stabilised):
-        K = torch.from_numpy(w.K).float().to(device)
-        known = torch.from_numpy(w.rotation).float().to(device).expand(n - 1, -1, -1, -1)
-        tgt = torch.full((n - 1,), n - 1, device=device)
+    if not (m.stabilise == STABILISE_KNOWN and w.stabilised):
+        K = torch.from_numpy(w.K).float().to(seq.device)
+        known = torch.from_numpy(w.rotation).float().to(seq.device).expand(n - 1, -1, -1, -1)
+        tgt = torch.full((n - 1,), n - 1, device=seq.device)
         if m.stabilise == STABILISE_POSENET:
-            mode, poses = "6dof", m.net.pose(sequence).float().expand(n - 1, -1, -1)
+            poses = m.net.pose(seq.reshape(1, 3 * n, h, wd)).float().expand(n - 1, -1, -1)
+            mode = "6dof"
         else:
-            mode, poses = "orientation", torch.zeros(n - 1, n, 3, device=device)
+            mode, poses = "orientation", torch.zeros(n - 1, n, 3, device=seq.device)
         pairs = Stabiliser(mode, known, tgt, refs, K)(pairs, poses)
     raw = m.net(pairs)[0].float()  # (N − 1, 1, h, w), metres at d0
     if m.clamp is not None:
