@@ -29,6 +29,7 @@ from ..unsupervised import finetune as finetune_lib
 from ..unsupervised import toy as study
 from ..unsupervised import toy_plots, toy_runs
 from ..unsupervised.reprojection import SMOOTH_LOSSES
+from ..unsupervised.sequence_eval import PAIR_TARGET_DEPTH, SEQUENCE_LENGTH
 from ..unsupervised.training import smooth_settings
 from .options import (
     DEVICE_OPTION,
@@ -402,7 +403,15 @@ def finetune_cmd(input_: Path | None, res: str | None, out: Path, resume: bool, 
     click.echo(describe(summary))
 
 
-@click.command("eval-sequences")
+@click.command(
+    "eval-sequences",
+    help=f"""Score depth networks the way thesis 5.4.3-5.4.4 does (Tables 5.2-5.3): the depth
+    of the last frame of every {SEQUENCE_LENGTH}-frame sequence, from the pair whose mean DepthNet
+    output is closest to {PAIR_TARGET_DEPTH:g} m (frames stabilised by the known orientation, or
+    PoseNet's for 6-DoF networks), scaled by the measured displacement (P); SFMLearner scaled by
+    PoseNet (P) and by the ground-truth median (GT); a constant plane (GT). Writes results.md
+    (the thesis' numbers beside), .csv, .json.""",
+)
 @click.option(
     "--ckpt",
     "ckpts",
@@ -416,7 +425,7 @@ def finetune_cmd(input_: Path | None, res: str | None, out: Path, resume: bool, 
     "--data",
     type=click.Path(path_type=Path),
     required=True,
-    help="Dataset whose scenes have 5 frames or more (stabilised or rotating).",
+    help=f"Dataset whose scenes have {SEQUENCE_LENGTH} frames or more (stabilised or rotating).",
 )
 @click.option(
     "--split",
@@ -445,12 +454,7 @@ def eval_sequences_cmd(
     device: str,
     quiet: bool,
 ) -> None:
-    """Score depth networks the way thesis 5.4.3-5.4.4 does (Tables 5.2-5.3): the depth of the
-    last frame of every 5-frame sequence, from the pair whose mean DepthNet output is closest to
-    50 m (frames stabilised by the known orientation, or PoseNet's for 6-DoF networks), scaled
-    by the measured displacement (P); SFMLearner scaled by PoseNet (P) and by the ground-truth
-    median (GT); a constant plane (GT). Writes results.md (the thesis' numbers beside), .csv,
-    .json."""
+    """The command's help is above (its numbers are sequence_eval's constants)."""
     from ..unsupervised.sequence_report import run as run_sequences
 
     data = dataset_dir(data)
