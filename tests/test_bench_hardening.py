@@ -547,7 +547,9 @@ def test_eval_refuses_a_shift_the_scenes_cannot_give(tiny_dataset, tmp_path):
 
 
 @pytest.mark.render
-@pytest.mark.parametrize("command", ["infer", "eval-multishift", "pretrained", "resume"])
+@pytest.mark.parametrize(
+    "command", ["infer", "eval-multishift", "eval-sequences", "pretrained", "resume"]
+)
 def test_every_reader_checks_checkpoint_metadata(tiny_dataset, tmp_path, command):
     """The same check (checkpoint.check_metadata) and line for every command reading one."""
     out = tmp_path / "out"
@@ -561,6 +563,8 @@ def test_every_reader_checks_checkpoint_metadata(tiny_dataset, tmp_path, command
                   .parent, "--speed", 1, "--fps", 10, "--quiet", "--out", out],
         "eval-multishift": ["eval-multishift", "--ckpt", ckpt, "--data", tiny_dataset,
                             "--max-shift", 3, "--quiet", "--out", out],
+        "eval-sequences": ["eval-sequences", "--ckpt", ckpt, "--data", tiny_dataset, "--quiet",
+                           "--out", out],
         "pretrained": [*run, "--pretrained", ckpt],
         "resume": [*run, "--resume"],
     }[command]  # fmt: skip

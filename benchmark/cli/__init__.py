@@ -35,6 +35,7 @@ def cli() -> None:
     stillbox-bench eval-multishift --ckpt C --data SEQ --out R  shift strategies on sequences
     stillbox-bench toy --out runs/toy                        thesis 4.6: losses without ground truth
     stillbox-bench finetune --ckpt C --input flight.mp4 --speed 9 --out runs/ft  your footage
+    stillbox-bench eval-sequences --ckpt C --data D --out R  thesis 5.4.3: Tables 5.2/5.3
     stillbox-bench fly --depth oracle --out runs/fly-oracle  thesis 6.5: closed-loop flight
     stillbox-bench fly-compare runs/fly-*                    one table of fly runs
     stillbox-bench list                                      registered models
@@ -52,6 +53,7 @@ for command in (
     video.eval_multishift,
     unsupervised.toy_cmd,
     unsupervised.finetune_cmd,
+    unsupervised.eval_sequences_cmd,
     flight.fly_cmd,
     flight.fly_compare,
 ):

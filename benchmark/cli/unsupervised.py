@@ -3,7 +3,9 @@
 figures, ``--resume`` going on from the last finished run of an interrupted study
 (:mod:`benchmark.unsupervised.toy_runs`); ``stillbox-bench finetune``: a depth network
 fine-tuned on a user's footage without depth (thesis §5.4.5,
-:mod:`benchmark.unsupervised.finetune`). User mistakes raise
+:mod:`benchmark.unsupervised.finetune`); ``stillbox-bench eval-sequences``: depth networks
+scored on 5-frame sequences as thesis §5.4.3-5.4.4 does (:mod:`benchmark.unsupervised
+.sequence_report`). User mistakes raise
 ``UserError`` (exit code 2), which ``stillbox-bench`` prints as one line.
 """
 
@@ -27,8 +29,16 @@ from ..unsupervised import finetune as finetune_lib
 from ..unsupervised import toy as study
 from ..unsupervised import toy_plots, toy_runs
 from ..unsupervised.reprojection import SMOOTH_LOSSES
+from ..unsupervised.sequence_eval import PAIR_TARGET_DEPTH, SEQUENCE_LENGTH
 from ..unsupervised.training import smooth_settings
-from .options import DEVICE_OPTION, UserError, int_option, torch_device, user_error
+from .options import (
+    DEVICE_OPTION,
+    UserError,
+    dataset_dir,
+    int_option,
+    torch_device,
+    user_error,
+)
 from .video import footage_options, size_option
 
 RESULTS_JSON = "results.json"
@@ -391,3 +401,74 @@ def finetune_cmd(input_: Path | None, res: str | None, out: Path, resume: bool, 
     except ValueError as e:
         raise user_error(e) from None
     click.echo(describe(summary))
+
+
+@click.command(
+    "eval-sequences",
+    help=f"""Score depth networks the way thesis 5.4.3-5.4.4 does (Tables 5.2-5.3): the depth
+    of the last frame of every {SEQUENCE_LENGTH}-frame sequence, from the pair whose mean DepthNet
+    output is closest to {PAIR_TARGET_DEPTH:g} m (frames stabilised by the known orientation, or
+    PoseNet's for 6-DoF networks), scaled by the measured displacement (P); SFMLearner scaled by
+    PoseNet (P) and by the ground-truth median (GT); a constant plane (GT). Writes results.md
+    (the thesis' numbers beside), .csv, .json.""",
+)
+@click.option(
+    "--ckpt",
+    "ckpts",
+    type=click.Path(path_type=Path),
+    multiple=True,
+    required=True,
+    help="Depth checkpoint written by 'run': depthnet*, depthnet-unsup*, sfmlearner* (repeat "
+    "to score several).",
+)
+@click.option(
+    "--data",
+    type=click.Path(path_type=Path),
+    required=True,
+    help=f"Dataset whose scenes have {SEQUENCE_LENGTH} frames or more (stabilised or rotating).",
+)
+@click.option(
+    "--split",
+    type=click.Choice(["train", "val", "test"]),
+    default="test",
+    show_default=True,
+    help="Split of scenes to score.",
+)
+@click.option(
+    "--upside-down",
+    "upside",
+    is_flag=True,
+    help="Also score every model on the same frames turned upside down (thesis Table 5.3).",
+)
+@click.option("--scenes", type=int, help="Score only the split's first N scenes.")
+@click.option("--out", type=click.Path(path_type=Path), required=True, help="Results folder.")
+@DEVICE_OPTION
+@click.option("--quiet", is_flag=True, help="No progress bar.")
+def eval_sequences_cmd(
+    ckpts: tuple[Path, ...],
+    data: Path,
+    split: str,
+    upside: bool,
+    scenes: int | None,
+    out: Path,
+    device: str,
+    quiet: bool,
+) -> None:
+    """The command's help is above (its numbers are sequence_eval's constants)."""
+    from ..unsupervised.sequence_report import run as run_sequences
+
+    data = dataset_dir(data)
+    check_out_folder(out, error=UserError)
+    dev = torch_device(device)
+    try:  # checkpoints and data are checked before anything is written to --out
+        rows, md = run_sequences(list(ckpts), data, out, split, upside, dev, scenes, not quiet)
+    except ValueError as e:
+        raise user_error(e, limit="--scenes") from None
+    click.echo(md)
+    best = min((r for r in rows if r["orientation"] == "upright"), key=lambda r: r["mae"])
+    click.echo(
+        f"Scored {len(ckpts)} checkpoint(s) and a constant plane on {rows[0]['sequences']} "
+        f"sequences of {data} ({split} split{', upright and upside down' if upside else ''}); "
+        f"lowest upright MAE: {best['model']} ({best['scale']}) {best['mae']:.3f} m. "
+        f"Results in {out}."
+    )

@@ -1,0 +1,328 @@
+"""``stillbox-bench eval-sequences``: depth networks trained without depth scored the thesis'
+way (§5.4.3-5.4.4, Tables 5.2-5.3); the command's run and tables: sequence_report.
+
+Every window of :data:`SEQUENCE_LENGTH` consecutive frames of each scene of a split (PoseNet's
+input length, 5) is one test sample: the depth of its *last* frame t is scored against t's
+ground truth (benchmark.core.metrics: predictions clamped to [0.1, 100] m, ground truth clipped
+to 100 m, per image, then the mean over images).
+
+- DepthNet (supervised ``depthnet*``, ``depthnet-unsup*``) reads the pairs (r, t) for each of the
+  4 earlier frames r, each reference stabilised to t's orientation first (eq. 5.1,
+  benchmark.unsupervised.rotation.Stabiliser): with the dataset's known orientation (the "O"
+  setting; every network but the 6-DoF ones, a supervised DepthNet's "D + O") or with PoseNet's
+  rotation (``depthnet-unsup-6dof*``); stabilised scenes are read as they are. The pair kept is
+  the one whose mean DepthNet output (finest scale, metres at the nominal displacement d0) is
+  closest to :data:`PAIR_TARGET_DEPTH` (§5.4.3), and its output is rescaled by the measured
+  displacement, × ‖t_pair‖ / d0 (the "P" scale). A network with a narrower depth range has its
+  outputs clamped to it first (registry.output_clamp), as ``eval`` does.
+- SFMLearner (``sfmlearner*``) reads t alone; its scale-free depth is put in metres by
+  benchmark.unsupervised.scaling: "P", the measured displacement over PoseNet's between the
+  window's first and last frames (the longest baseline of the window: our choice, the thesis
+  does not say which pair), and "GT", the per-image median ratio.
+- The constant plane (Table 5.3): every pixel at the median of the image's ground truth ("GT").
+
+``upside_down`` (Table 5.3's robustness test, sky down) scores the same windows with the rows
+of every frame and depth map flipped, the camera geometry flipped with them (:func:`upside_down`).
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from stillbox_gen.conventions import MAX_DEPTH
+from stillbox_gen.dataset import Dataset, Scene
+
+from ..core import metrics, registry
+from ..core.checkpoint import load_checkpoint, load_weights, source_error
+from ..core.errors import FieldError
+from .rotation import Stabiliser
+from .scaling import median_scale, pose_scale
+
+#: frames of a test window: PoseNet's input length (§5.4.3), the recipe's sequence length
+SEQUENCE_LENGTH = registry.UNSUPERVISED_RECIPE.sequence_length
+#: metres: the pair kept is the one whose mean DepthNet output is closest to this (§5.4.3,
+#: "an arbitrary chosen value set to 50 m, regardless of the dataset")
+PAIR_TARGET_DEPTH = 50.0
+#: where the rotation stabilising DepthNet's reference comes from
+STABILISE_KNOWN, STABILISE_POSENET, STABILISE_NONE = "known", "posenet", "none"
+#: scale factors: PoseNet's or the measured displacement ("P"), the ground-truth median ("GT")
+SCALE_P, SCALE_GT = "P", "GT"
+UPRIGHT, UPSIDE_DOWN = "upright", "upside-down"
+#: the flip of the camera's y axis (OpenCV axes: y down)
+FLIP_Y = np.diag([1.0, -1.0, 1.0])
+
+
+@dataclass(frozen=True)
+class Window:
+    """One test sample: ``frames`` (N, H, W, 3) uint8, oldest first; ``depth`` (H, W) metres,
+    the last frame's ground truth; ``K`` (3, 3) pixels; ``rotation`` (N, 3, 3): ``R_{t→i}``
+    from the last frame's camera axes to frame i's (identity when stabilised); ``position``
+    (N, 3): camera i's centre in the last frame's axes, metres; ``stabilised``: every rotation
+    is the identity; ``scene``, ``last``: the scene index and the last frame's index."""
+
+    frames: np.ndarray
+    depth: np.ndarray
+    K: np.ndarray
+    rotation: np.ndarray
+    position: np.ndarray
+    stabilised: bool
+    scene: int
+    last: int
+
+
+def scene_windows(scene: Scene, length: int = SEQUENCE_LENGTH) -> list[Window]:
+    """Every window of ``length`` consecutive frames of ``scene`` (the last frame t from
+    ``length - 1`` to the scene's last), from its frames, depth and poses."""
+    frames = np.stack([scene.load_rgb(f) for f in range(scene.frames)])
+    out = []
+    for t in range(length - 1, scene.frames):
+        first = t - length + 1
+        poses = [scene.relative_pose(t, i) for i in range(first, t + 1)]  # X_i = R·X_t + τ
+        rotation = np.stack([p[:3, :3] for p in poses])
+        position = np.stack([-p[:3, :3].T @ p[:3, 3] for p in poses])  # camera i: −Rᵀτ
+        depth, K = scene.load_depth(t), np.asarray(scene.K, np.float64)
+        window = Window(frames[first : t + 1], depth, K, rotation, position, scene.stabilised,
+                        scene.index, t)  # fmt: skip
+        out.append(window)
+    return out
+
+
+def upside_down(w: Window) -> Window:
+    """The window turned upside down (sky down): rows of every frame and of the depth flipped,
+    and the camera geometry with them: the image row y becomes H − 1 − y (pixel-centre
+    convention), so ``c_y`` becomes H − 1 − c_y (unchanged when centred), every 3-D point
+    (x, y, z) becomes (x, −y, z) (F = diag(1, −1, 1)), positions F·p and rotations F·R·F."""
+    h = w.depth.shape[0]
+    K = w.K.copy()
+    K[1, 2] = h - 1 - K[1, 2]
+    return replace(
+        w,
+        frames=np.ascontiguousarray(w.frames[:, ::-1]),
+        depth=np.ascontiguousarray(w.depth[::-1]),
+        K=K,
+        rotation=FLIP_Y @ w.rotation @ FLIP_Y,
+        position=w.position @ FLIP_Y,
+    )
+
+
+def choose_pair(means: torch.Tensor, target: float = PAIR_TARGET_DEPTH) -> int:
+    """The index of the pair whose mean output (metres) is closest to ``target`` (the first
+    of equally close ones)."""
+    return int((means.double() - target).abs().argmin())
+
+
+@dataclass
+class EvalModel:
+    """A method as scored here: ``net`` (None: the constant plane), its registry ``name``,
+    ``kind`` (registry.Kind), ``d0`` (metres its DepthNet answers for), ``clamp`` (outputs
+    clamped to it, or None), ``pose`` (its training's ``--pose``, None without PoseNet),
+    ``occlusion``, ``training_set`` and ``checkpoint`` (text for the tables), ``camera`` (its
+    training frames' ``width`` and ``height``, pixels, when the checkpoint records them)."""
+
+    name: str
+    kind: registry.Kind
+    net: torch.nn.Module | None = None
+    d0: float = 1.0
+    clamp: tuple[float, float] | None = None
+    pose: str | None = None
+    occlusion: bool = False
+    training_set: str = "-"
+    checkpoint: str = ""
+    camera: dict | None = None
+
+    @property
+    def stabilise(self) -> str:
+        """Where the reference's rotation comes from: PoseNet's (6-DoF networks), none
+        (single-frame networks, the constant plane), else the known orientation."""
+        if self.kind.scored_as is not registry.Scoring.DEPTH:
+            return STABILISE_NONE
+        return STABILISE_POSENET if self.pose == "6dof" else STABILISE_KNOWN
+
+    @property
+    def scales(self) -> tuple[str, ...]:
+        if self.kind.scored_as is registry.Scoring.SCALE_FREE:
+            return (SCALE_P, SCALE_GT)
+        return (SCALE_GT,) if self.net is None else (SCALE_P,)
+
+
+def constant_plane() -> EvalModel:
+    """Table 5.3's constant plane: the image's ground-truth median everywhere."""
+    return EvalModel("constant", registry.CONSTANT)
+
+
+def load_model(path: Path, field: str = "ckpt") -> EvalModel:
+    """A depth checkpoint as an :class:`EvalModel` (network in eval mode, on the CPU); a flow
+    network's is refused (ValueError of one line naming ``field`` and the file)."""
+    ck = load_checkpoint(path, field)
+    name = ck["model_name"]
+    kind = registry.MODELS[name].kind
+    if kind.scored_as not in (registry.Scoring.DEPTH, registry.Scoring.SCALE_FREE):
+        raise source_error(field, path, f"'{name}' predicts {kind.name}, not depth")
+    net = registry.build_model(name)
+    load_weights(net, ck, field, path, name)
+    cfg = ck.get("config") or {}
+    data, pretrained = cfg.get("data"), cfg.get("pretrained")
+    training_set = Path(str(data)).name if data else "?"
+    return EvalModel(
+        name, kind, net.eval(), float(ck["nominal_displacement"]),
+        registry.output_clamp(ck.get("depth_range", (0.0, MAX_DEPTH))),
+        cfg.get("pose") if kind.target is registry.Target.VIDEO else None,
+        bool(cfg.get("occlusion")),
+        f"pretrained → {training_set}" if pretrained else training_set, str(path),
+        ck.get("camera"),
+    )  # fmt: skip
+
+
+def _normalised(frames: np.ndarray, device: torch.device) -> torch.Tensor:
+    """(N, H, W, 3) uint8 -> (N, 3, H, W) float32, DepthNet's (x/255 − 0.5)/0.2."""
+    x = torch.from_numpy(np.ascontiguousarray(frames)).permute(0, 3, 1, 2).float()
+    return ((x / 255.0 - 0.5) / 0.2).to(device)
+
+
+def _full(depth: torch.Tensor, h: int, w: int) -> torch.Tensor:
+    """(1, 1, h', w') -> (H, W) metres (bilinear, as benchmark.core.metrics.upsample_to)."""
+    return metrics.upsample_to(depth, h, w)[0]
+
+
+@torch.inference_mode()
+def predict(m: EvalModel, w: Window, device: torch.device) -> dict:
+    """The last frame's depth (H, W) metres for each of ``m.scales`` (``{scale: depth}``), and
+    ``shift``: the frames between the chosen reference and t (DepthNet; None otherwise)."""
+    gt = torch.from_numpy(np.ascontiguousarray(w.depth)).to(device)
+    if m.net is None:  # the constant plane, at the ground truth's median
+        median = median_scale(torch.ones_like(gt)[None], gt[None])[0]
+        return {SCALE_GT: torch.full_like(gt, float(median)), "shift": None}
+    seq = _normalised(w.frames, device)  # (N, 3, H, W)
+    if m.kind.scored_as is registry.Scoring.SCALE_FREE:
+        return _scale_free(m, w, seq, gt)
+    return _depthnet(m, w, seq)
+
+
+def _scale_free(m: EvalModel, w: Window, seq: torch.Tensor, gt: torch.Tensor) -> dict:
+    """An SfmLearnerNet's depth of the last frame with the "P" scale (PoseNet's displacement
+    between the window's first and last frames against the measured one) and the "GT" one."""
+    n, _, h, wd = seq.shape
+    raw = _full(m.net(torch.cat([seq[-1], seq[-1]])[None])[0].float(), h, wd)[None]
+    poses = m.net.pose(seq.reshape(1, 3 * n, h, wd)).float()
+    first = torch.from_numpy(w.position[0]).float().to(seq.device)[None]  # metres from t
+    p = pose_scale(poses, torch.tensor([[0, n - 1]], device=seq.device), first)
+    g = median_scale(raw, gt[None]).to(raw.dtype)
+    return {SCALE_P: raw[0] * p[0], SCALE_GT: raw[0] * g[0], "shift": None}
+
+
+def _depthnet(m: EvalModel, w: Window, seq: torch.Tensor) -> dict:
+    """DepthNet's depth of the last frame from the pair (r, t) whose mean output is closest to
+    PAIR_TARGET_DEPTH, each reference stabilised first (:attr:`EvalModel.stabilise`), × ‖t_r‖/d0."""
+    n, _, h, wd = seq.shape
+    refs = torch.arange(n - 1, device=seq.device)
+    pairs = torch.cat([seq[:-1], seq[-1:].expand(n - 1, -1, -1, -1)], 1)  # (N − 1, 6, H, W)
+    if not (m.stabilise == STABILISE_KNOWN and w.stabilised):
+        K = torch.from_numpy(w.K).float().to(seq.device)
+        known = torch.from_numpy(w.rotation).float().to(seq.device).expand(n - 1, -1, -1, -1)
+        tgt = torch.full((n - 1,), n - 1, device=seq.device)
+        if m.stabilise == STABILISE_POSENET:
+            poses = m.net.pose(seq.reshape(1, 3 * n, h, wd)).float().expand(n - 1, -1, -1)
+            mode = "6dof"
+        else:
+            mode, poses = "orientation", torch.zeros(n - 1, n, 3, device=seq.device)
+        pairs = Stabiliser(mode, known, tgt, refs, K)(pairs, poses)
+    raw = m.net(pairs)[0].float()  # (N − 1, 1, h, w), metres at d0
+    if m.clamp is not None:
+        raw = raw.clamp(*m.clamp)
+    k = choose_pair(raw.mean((1, 2, 3)))
+    moved = float(np.linalg.norm(w.position[k]))
+    return {SCALE_P: _full(raw[k : k + 1] * (moved / m.d0), h, wd), "shift": n - 1 - k}
+
+
+@dataclass
+class Tally:
+    """Per-image metrics of one (model, scale, orientation), and the shifts DepthNet used."""
+
+    per_image: dict[str, list[torch.Tensor]] = field(default_factory=dict)
+    shifts: Counter = field(default_factory=Counter)
+
+    def add(self, pred: torch.Tensor, gt: torch.Tensor) -> None:
+        for k, v in metrics.image_metrics(pred[None], gt[None]).items():
+            self.per_image.setdefault(k, []).append(v.cpu())
+
+    def summary(self) -> dict:
+        agg = metrics.aggregate({k: torch.cat(v) for k, v in self.per_image.items()})
+        out = {k: agg[k] for k in metrics.METRICS}
+        out["images"] = agg["images"]
+        out["shifts_used"] = " ".join(f"{s}:{c}" for s, c in sorted(self.shifts.items()))
+        return out
+
+
+def test_scenes(data: Path, split: str, limit: int | None) -> list[Scene]:
+    """The split's scenes (first ``limit``); FieldError on ``data`` when there is none or one is
+    shorter than a window, on ``limit`` when below 1."""
+    if limit is not None and limit < 1:
+        raise FieldError("limit", f"must be at least 1, got {limit}")
+    scenes = Dataset(data).scenes(split, limit)
+    if not scenes:
+        raise FieldError("data", f"no scene in the {split} split", where=f" {data}")
+    short = [s for s in scenes if s.frames < SEQUENCE_LENGTH]
+    if short:
+        raise FieldError(
+            "data", f"scene {short[0].index} has {short[0].frames} frames; sequences of "
+            f"{SEQUENCE_LENGTH} are scored", where=f" {data}",
+        )  # fmt: skip
+    return scenes
+
+
+def check_size(models: list[EvalModel], scenes: list[Scene], data: Path) -> None:
+    """FieldError on ``ckpt`` when a checkpoint was trained on another frame size."""
+    h, w = scenes[0].load_rgb(0).shape[:2]
+    for m in models:
+        cam = m.camera
+        if cam and (cam["height"], cam["width"]) != (h, w):
+            raise FieldError(
+                "ckpt", f"trained on {cam['width']}x{cam['height']} frames, {data} has {w}x{h}",
+                where=f" {m.checkpoint}",
+            )  # fmt: skip
+
+
+def evaluate(
+    models: list[EvalModel],
+    scenes: list[Scene],
+    device: torch.device,
+    orientations: tuple[str, ...] = (UPRIGHT,),
+    progress: bool = True,
+) -> list[dict]:
+    """One row per (orientation, model, scale): the model's fields, the metrics, ``images``,
+    ``sequences`` and ``shifts_used`` (frames between the chosen reference and t: count)."""
+    from tqdm import tqdm
+
+    for m in models:
+        if m.net is not None:
+            m.net.to(device)
+    tallies = {(o, i, s): Tally() for o in orientations for i, m in enumerate(models)
+               for s in m.scales}  # fmt: skip
+    count = 0
+    for scene in tqdm(scenes, desc="sequences", unit="scene", disable=not progress):
+        for window in scene_windows(scene):
+            count += 1
+            for o in orientations:
+                w = upside_down(window) if o == UPSIDE_DOWN else window
+                gt = torch.from_numpy(np.ascontiguousarray(w.depth)).to(device)
+                for i, m in enumerate(models):
+                    out = predict(m, w, device)
+                    for s in m.scales:
+                        tallies[o, i, s].add(out[s], gt)
+                    if out["shift"] is not None:
+                        tallies[o, i, m.scales[0]].shifts[out["shift"]] += 1
+    rows = []
+    for (o, i, s), tally in tallies.items():
+        m = models[i]
+        rows.append({
+            "orientation": o, "model": m.name, "checkpoint": m.checkpoint,
+            "training_set": m.training_set, "scale": s, "pose": m.pose or "",
+            "occlusion": m.occlusion, "stabilisation": m.stabilise, **tally.summary(),
+            "sequences": count,
+        })  # fmt: skip
+    return rows

@@ -1,0 +1,221 @@
+"""``eval-sequences``' results in the layout of thesis Table 5.2 (method, training set, scale
+factor, supervision, occlusion module, metrics), the thesis' Table 5.2 / 5.3 numbers beside the
+rows that match, and the files: results.md, results.csv, results.json."""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from stillbox_gen.formats import atomic_write_text
+
+from ..core import metrics, registry, runfolder
+from ..video.multishift_eval import RESULTS_CSV, RESULTS_JSON, RESULTS_MD
+from .sequence_eval import (
+    PAIR_TARGET_DEPTH,
+    SEQUENCE_LENGTH,
+    UPRIGHT,
+    UPSIDE_DOWN,
+    check_size,
+    constant_plane,
+    evaluate,
+    load_model,
+    test_scenes,
+)
+
+#: the "no supervision" mark of the tables (Table 5.3 prints "-" where Table 5.2 prints ✗)
+NONE = "✗"
+#: method names of the thesis' tables, per kind of registered method
+METHOD_NAMES = {
+    registry.DEPTH.name: "Supervised DepthNet",
+    registry.UNSUPERVISED.name: "Unsupervised DepthNet",
+    registry.SCALE_FREE.name: "SFMLearner",
+    registry.CONSTANT.name: "Constant plane",
+}
+
+
+@dataclass(frozen=True)
+class ThesisRow:
+    """One row of thesis Table 5.2 (StillBox, no pretraining) or 5.3 (upside-down KITTI, no
+    training on it): ``occlusion`` None where the table has no such column; ``values`` in
+    core.metrics.METRICS' order (MAE, MRE, MLE, SAE, SLE, P1.25, P1.25², P1.25³)."""
+
+    table: str
+    method: str
+    training_set: str
+    scale: str
+    supervision: str
+    occlusion: bool | None
+    values: tuple[float, ...]
+
+
+#: the thesis' numbers (Table 5.2: upright scores; Table 5.3: upside down)
+THESIS_ROWS = (
+    ThesisRow("5.2", "Supervised DepthNet", "S", "P", "D + O", False,
+              (3.822, 0.224, 0.229, 6.864, 0.446, 0.718, 0.856, 0.927)),
+    ThesisRow("5.2", "SFMLearner", "S", "GT", NONE, False,
+              (11.429, 0.593, 0.633, 17.173, 0.461, 0.479, 0.656, 0.756)),
+    ThesisRow("5.2", "SFMLearner", "S", "P", NONE, False,
+              (14.324, 0.816, 0.461, 19.447, 0.726, 0.302, 0.542, 0.696)),
+    ThesisRow("5.2", "Unsupervised DepthNet", "S", "P", NONE, False,
+              (10.356, 0.437, 0.387, 10.236, 0.516, 0.476, 0.697, 0.822)),
+    ThesisRow("5.2", "Unsupervised DepthNet", "S", "P", "O", False,
+              (5.248, 0.259, 0.232, 9.600, 0.380, 0.709, 0.887, 0.928)),
+    ThesisRow("5.2", "Unsupervised DepthNet", "S", "P", NONE, True,
+              (10.412, 0.435, 0.383, 15.450, 0.510, 0.503, 0.716, 0.820)),
+    ThesisRow("5.2", "Unsupervised DepthNet", "S", "P", "O", True,
+              (5.060, 0.212, 0.206, 9.262, 0.333, 0.729, 0.899, 0.943)),
+    ThesisRow("5.3", "Supervised DepthNet", "S", "P", "D + O", None,
+              (7.716, 0.637, 0.443, 10.499, 0.548, 0.359, 0.614, 0.774)),
+    ThesisRow("5.3", "Constant plane", "-", "GT", "-", None,
+              (7.547, 0.458, 0.476, 12.124, 0.600, 0.296, 0.547, 0.752)),
+    ThesisRow("5.3", "SFMLearner", "K", "GT", NONE, None,
+              (8.433, 0.551, 0.551, 12.469, 0.680, 0.255, 0.482, 0.668)),
+    ThesisRow("5.3", "SFMLearner", "K", "P", NONE, None,
+              (16.085, 1.511, 0.790, 19.677, 0.927, 0.176, 0.342, 0.494)),
+    ThesisRow("5.3", "Unsupervised DepthNet", "S → K", "P", NONE, None,
+              (7.759, 0.596, 0.442, 11.250, 0.555, 0.370, 0.628, 0.784)),
+    ThesisRow("5.3", "Unsupervised DepthNet", "S → K", "P", "O", None,
+              (7.731, 0.604, 0.414, 11.152, 0.536, 0.424, 0.673, 0.807)),
+)  # fmt: skip
+#: which thesis table sits beside the scores of each orientation
+THESIS_TABLE = {UPRIGHT: "5.2", UPSIDE_DOWN: "5.3"}
+HEADINGS = {
+    UPRIGHT: "Upright (thesis Table 5.2 beside: StillBox, no pretraining)",
+    UPSIDE_DOWN: "Upside down: rows of frames and depth flipped, sky down (thesis Table 5.3 "
+    "beside: upside-down KITTI, networks trained on KITTI or StillBox → KITTI, so only "
+    "indicative)",
+}
+SHOWN = ("MAE", "MRE", "MLE", "SAE", "SLE", "P1.25", "P1.25²", "P1.25³")  # METRICS' order
+
+
+def method(row: dict) -> str:
+    """The thesis' name of a result row's method."""
+    return METHOD_NAMES[registry.MODELS[row["model"]].kind.name]
+
+
+def supervision(row: dict) -> str:
+    """Table 5.2's supervision of a result row: "D + O" (depth; frames stabilised by the known
+    orientation), "O" (``--pose orientation``), "-" (no training) or ✗ (none)."""
+    kind = registry.MODELS[row["model"]].kind
+    if kind is registry.DEPTH:
+        return "D + O"
+    if kind is registry.CONSTANT:
+        return "-"
+    return "O" if row["pose"] == "orientation" else NONE
+
+
+def thesis_row(row: dict) -> ThesisRow | None:
+    """The thesis row beside a result row (its orientation's table): same method, scale and
+    supervision, and occlusion module where the table has one."""
+    key = (THESIS_TABLE[row["orientation"]], method(row), row["scale"], supervision(row))
+    for t in THESIS_ROWS:
+        if (t.table, t.method, t.scale, t.supervision) == key and t.occlusion in (
+            None,
+            bool(row["occlusion"]),
+        ):
+            return t
+    return None
+
+
+def _cells(values) -> str:
+    return " | ".join(f"{v:.3f}" for v in values)
+
+
+def occlusion(row: dict) -> str:
+    """The occlusion-module column: ✓, ✗, or "-" for the constant plane."""
+    if registry.MODELS[row["model"]].kind is registry.CONSTANT:
+        return "-"
+    return "✓" if row["occlusion"] else NONE
+
+
+def markdown(rows: list[dict], info: dict) -> str:
+    """One table per orientation, each of our rows followed by the matching thesis row."""
+    scenes = f"{info['scenes']} scene{'s' if info['scenes'] != 1 else ''}"
+    lines = [
+        f"# Depth from {info['sequence_length']}-frame sequences (thesis §5.4.3-5.4.4) on "
+        f"{info['data']}",
+        "",
+        f"{info['split']} split: {scenes}, {rows[0]['sequences']} sequences "
+        f"({'rotating' if info['rotating'] else 'stabilised'} camera). Depth of each sequence's "
+        f"last frame; DepthNet's pair: mean output closest to {info['pair_target_depth_m']:g} m, "
+        "scaled by the measured displacement (P). " + info["averaging_rule"],
+    ]
+    head = "| method | model | training set | scale factor | supervision | occlusion | "
+    for o in info["orientations"]:
+        lines += ["", f"## {HEADINGS[o]}", ""]
+        lines.append(head + " | ".join(SHOWN) + " | pair chosen (frames apart: count) |")
+        lines.append("|" + "---|" * (6 + len(SHOWN) + 1))
+        for r in (r for r in rows if r["orientation"] == o):
+            lines.append(
+                f"| {method(r)} | {r['model']} | {r['training_set']} | {r['scale']} | "
+                f"{supervision(r)} | {occlusion(r)} | {_cells(r[k] for k in metrics.METRICS)} | "
+                f"{r['shifts_used']} |"
+            )
+            t = thesis_row(r)
+            if t is not None:
+                occ = "" if t.occlusion is None else "✓" if t.occlusion else NONE
+                lines.append(
+                    f"| *thesis Table {t.table}* | | {t.training_set} | {t.scale} | "
+                    f"{t.supervision} | {occ} | {_cells(t.values)} | |"
+                )
+    return "\n".join(lines) + "\n"
+
+
+def with_thesis(row: dict) -> dict:
+    """A result row with its method, supervision and the thesis' numbers beside (``thesis_*``,
+    None where no thesis row matches)."""
+    t = thesis_row(row)
+    first = ("orientation", "method", "model")
+    out = {"orientation": row["orientation"], "method": method(row), "model": row["model"]}
+    out.update((k, v) for k, v in row.items() if k not in first)
+    out.update(supervision=supervision(row), thesis_table=t.table if t else None)
+    for k, name in enumerate(metrics.METRICS):
+        out[f"thesis_{name}"] = t.values[k] if t else None
+    return out
+
+
+def write_results(out: Path, rows: list[dict], info: dict) -> str:
+    """results.md, results.csv (one row per orientation, method and scale) and results.json
+    (``info`` and the rows) into ``out``, each written atomically; returns the Markdown."""
+    full = [with_thesis(r) for r in rows]
+    md = markdown(rows, info)
+    runfolder.make_folder(out)
+    atomic_write_text(out / RESULTS_CSV, runfolder.csv_text(full))
+    atomic_write_text(out / RESULTS_JSON, json.dumps({**info, "rows": full}, indent=2) + "\n")
+    atomic_write_text(out / RESULTS_MD, md)
+    return md
+
+
+def run(
+    checkpoints: list[Path],
+    data: Path,
+    out: Path,
+    split: str = "test",
+    upside: bool = False,
+    device: torch.device | None = None,
+    limit: int | None = None,
+    progress: bool = True,
+) -> tuple[list[dict], str]:
+    """Load every checkpoint, check them and the data, score (sequence_eval.evaluate; the
+    constant plane first) and write :func:`write_results` (``out`` is written only after every
+    check and the scoring); returns the rows and the Markdown."""
+    device = device or torch.device("cpu")
+    t0 = time.perf_counter()
+    models = [constant_plane(), *(load_model(p) for p in checkpoints)]
+    scenes = test_scenes(data, split, limit)
+    check_size(models, scenes, data)
+    orientations = (UPRIGHT, UPSIDE_DOWN) if upside else (UPRIGHT,)
+    rows = evaluate(models, scenes, device, orientations, progress)
+    info = {
+        "data": str(data), "split": split, "scenes": len(scenes),
+        "sequence_length": SEQUENCE_LENGTH, "pair_target_depth_m": PAIR_TARGET_DEPTH,
+        "rotating": any(not s.stabilised for s in scenes), "orientations": list(orientations),
+        "device": str(device), "averaging_rule": metrics.AVERAGING_RULE,
+        "seconds": round(time.perf_counter() - t0, 1),
+    }  # fmt: skip
+    return rows, write_results(out, rows, info)
