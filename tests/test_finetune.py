@@ -209,6 +209,29 @@ def test_poses_give_the_pose_cosine_column(files, tmp_path):
     assert [r["pose_cosine"] for r in _steps(tmp_path / "speed")] == [""]
 
 
+def test_known_motion_warps_with_the_poses_and_needs_them(files, tmp_path):
+    """--known-motion: the warps use --poses' motion (steps.csv's cosine against it is 1), there
+    is no warm-up (every step trains the DepthNet), and without --poses it is refused in one
+    line naming the flag."""
+    poses = tmp_path / "poses.csv"
+    poses.write_text("x,y,z\n" + "".join(f"{0.3 * k},{0.1 * k},0\n" for k in range(8)))
+    out = tmp_path / "ft"
+    proc = invoke_main(
+        cli.main, "finetune", "--ckpt", files["ckpt"], "--input", files["folder"], "--out", out,
+        "--poses", poses, "--fps", 10, *TINY, "--steps", 2, "--log-every", 1, "--known-motion",
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    rows = _steps(out)
+    assert [r["phase"] for r in rows] == ["joint", "joint"]
+    assert all(abs(float(r["pose_cosine"]) - 1) < 1e-5 for r in rows)
+    before, after = _weights(files["ckpt"]), _weights(out / "checkpoints" / "best.pt")
+    assert any(not torch.equal(before[k], after[k]) for k in before)
+    proc = finetune(files, tmp_path / "speed", "--known-motion", ok=False)
+    assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1
+    assert "--known-motion" in proc.stderr and "--poses" in proc.stderr
+    assert not (tmp_path / "speed").exists()
+
+
 def test_a_depthnet_unsup_checkpoint_keeps_its_posenet(files, tmp_path):
     ckpt = _checkpoint(tmp_path / "unsup.pt", "depthnet-unsup-tiny")
     out = tmp_path / "ft"

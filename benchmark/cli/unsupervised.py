@@ -366,6 +366,14 @@ def _load_or_start(
     f"{smooth_settings(None, None, False)[0]:g}; {smooth_settings(None, None, True)[0]:g} with "
     "--occlusion]",
 )
+@click.option(
+    "--known-motion",
+    is_flag=True,
+    default=None,
+    help="Warp with the camera motion of --poses (camera axes, e.g. from GPS) instead of "
+    "PoseNet's translations: only the DepthNet learns.  [default: off; the pose warm-up is 0 "
+    "with it]",
+)
 @click.option("--seed", type=int, help="Seed of PoseNet's initialisation and the sampling.  "
               "[default: 0]")  # fmt: skip
 @click.option(

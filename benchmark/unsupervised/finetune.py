@@ -64,7 +64,7 @@ POSE_WARMUP = 200
 #: Options a resumed fine-tuning keeps from its checkpoint (given again, they must be equal)
 RESUMED = (
     *("ckpt", "input", "speed", "poses", "fps", "fov", "focal", "res", "train_fov"),
-    *("lr", "batch_size", "pose_warmup", "occlusion", "smooth_weight", "seed"),
+    *("lr", "batch_size", "pose_warmup", "occlusion", "smooth_weight", "seed", "known_motion"),
 )
 PHASES = ("pose-warmup", "joint")
 
@@ -91,6 +91,7 @@ class FinetuneOptions:
     occlusion: bool = False
     smooth_weight: float | None = None
     seed: int | None = None
+    known_motion: bool | None = None
     resume: bool = False
     threads: int = 0
     device: str = "auto"
@@ -99,10 +100,13 @@ class FinetuneOptions:
     quiet: bool = False
 
 
-def defaults() -> dict:
-    """The values of a new run's options left at None."""
+def defaults(known_motion: bool = False) -> dict:
+    """The values of a new run's options left at None (no pose warm-up when the warps use the
+    known motion: PoseNet is not used)."""
     r = UNSUPERVISED_RECIPE
-    return {"pose_warmup": POSE_WARMUP, "lr": r.lr, "batch_size": r.batch_size, "seed": 0}
+    warmup = 0 if known_motion else POSE_WARMUP
+    return {"pose_warmup": warmup, "lr": r.lr, "batch_size": r.batch_size, "seed": 0,
+            "known_motion": False}  # fmt: skip
 
 
 def check_numbers(o: FinetuneOptions) -> None:
@@ -200,7 +204,10 @@ class Finetuner:
         for name in ("ckpt", "input"):
             if getattr(o, name) is None:
                 raise FieldError(name, "missing: give it (or ", Ref("resume"), " a run)")
-        o = replace(o, **{k: v for k, v in defaults().items() if getattr(o, k) is None})
+        o = replace(o, **{k: v for k, v in defaults(bool(o.known_motion)).items()
+                          if getattr(o, k) is None})  # fmt: skip
+        if o.known_motion and o.poses is None:
+            raise FieldError("known_motion", "needs --poses (the camera's motion in camera axes)")
         self.o = o
         if o.threads > 0:
             torch.set_num_threads(o.threads)
@@ -239,7 +246,15 @@ class Finetuner:
         lam, kappa = smooth_settings(o.smooth_weight, None, o.occlusion)
         weights = UNSUPERVISED_RECIPE.loss_weights
         self.step = PhotometricStep(
-            self.net, self.opt, self.device, weights, self.d0, lam, kappa, o.occlusion
+            self.net,
+            self.opt,
+            self.device,
+            weights,
+            self.d0,
+            lam,
+            kappa,
+            o.occlusion,
+            known_translation=o.known_motion,
         )
         self.sampler = EpochSampler(len(self.data), o.seed)
         self.state = {"epoch": 0, "step_in_epoch": 0, "global_step": 0}

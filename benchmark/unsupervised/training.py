@@ -122,8 +122,10 @@ class PhotometricStep:
     ``weights``: w_s finest first;
     ``d0``: metres (None: no eq. 5.2, PoseNet's translations used as they are, SFMLearner's
     arbitrary scale); ``occlusion``: the occlusion module on; ``pose``: TrainConfig.pose
-    (where the rotations come from, benchmark.unsupervised.rotation). :meth:`losses` gives
-    the terms.
+    (where the rotations come from, benchmark.unsupervised.rotation); ``known_translation``: the
+    batch's known camera motion (``translation``, e.g. a drone's GPS) replaces PoseNet's
+    translations in the warps (stabilised data; ``finetune --known-motion``). :meth:`losses`
+    gives the terms.
     """
 
     def __init__(
@@ -138,11 +140,15 @@ class PhotometricStep:
         occlusion: bool = False,
         autocast: torch.dtype | None = None,
         pose: str = "translation",
+        known_translation: bool = False,
     ):
+        if known_translation and pose != "translation":
+            raise ValueError("known_translation is for stabilised data (pose 'translation')")
         self.net, self.opt, self.device = net, opt, device
         self.weights, self.d0 = tuple(weights), d0
         self.smooth_weight, self.kappa, self.occlusion = smooth_weight, kappa, occlusion
         self.autocast, self.pose = autocast, pose
+        self.known_translation = known_translation
 
     def _forward(self, batch: dict) -> tuple[list[torch.Tensor], torch.Tensor]:
         pair = batch["input"].to(self.device)
@@ -170,6 +176,8 @@ class PhotometricStep:
         known = batch["rotation"].to(self.device) if self.pose in ROTATING_MODES else None
         rotations = target_rotations(self.pose, poses, known, tgt)  # R_{t→i}, None: identity
         translations = compensate(poses[..., :3], tgt, rotations)
+        if self.known_translation:  # the batch's camera motion, X_i = X_t − T_i, not PoseNet's
+            translations = -batch["translation"].to(self.device).float()
         if self.d0 is not None:
             translations = normalise_translations(translations, ref, self.d0)
         others = reference_indices(tgt, n)  # (B, N - 1)
