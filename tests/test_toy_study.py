@@ -402,6 +402,31 @@ def test_an_interrupted_study_resumed_writes_the_uninterrupted_outputs(
 
 
 @pytest.mark.render
+def test_halves_kept_and_combined_through_the_cli_write_the_whole_study(
+    toy_data, quick_study, tmp_path
+):
+    """Two `--quick` studies of three losses each with --keep-runs, their run files copied into
+    one folder, then --resume with every loss: the whole study's results.json (timings apart),
+    depths.npz and table.md; without --keep-runs the run files go (the other tests)."""
+    data = ("--flower", toy_data["flower"], "--horizon", toy_data["horizon"])
+    halves = ("tv,tvv,diffusion", "gradient_diffusion,robust_diffusion,robust_gradient_diffusion")
+    full = tmp_path / "full"
+    for i, losses in enumerate(halves):
+        out = tmp_path / f"half{i}"
+        _invoke(*data, "--out", out, "--quick", "--quiet", "--losses", losses, "--keep-runs")
+        assert len(toy_runs.finished(out)) == 7 and (out / RESULTS_JSON).exists()
+        shutil.copytree(toy_runs.folder(out), toy_runs.folder(full), dirs_exist_ok=True)
+    _invoke(*data, "--out", full, "--quick", "--quiet", "--resume")
+    whole = json.loads((quick_study / RESULTS_JSON).read_text())
+    combined = json.loads((full / RESULTS_JSON).read_text())
+    assert json.dumps(_untimed(combined)) == json.dumps(_untimed(whole))
+    assert (full / TABLE_MD).read_text() == (quick_study / TABLE_MD).read_text()
+    with np.load(quick_study / DEPTHS_NPZ) as a, np.load(full / DEPTHS_NPZ) as b:
+        assert a.files == b.files and all(np.array_equal(a[k], b[k]) for k in a.files)
+    assert not toy_runs.folder(full).exists()
+
+
+@pytest.mark.render
 def test_true_depth_explains_the_frames_better_than_the_start(scenes):
     """Warped with the true depth (ODM on), the references match the centre frame far better
     than with the start depth, and better than with a depth off by 50 %; what is left is the

@@ -203,6 +203,12 @@ def _summary(results: dict, seconds: float) -> str:
     help=f"Continue the unfinished study in --out (its finished runs are kept in "
     f"--out/{toy_runs.FOLDER}/ until the study ends) with the same settings and data.",
 )
+@click.option(
+    "--keep-runs",
+    is_flag=True,
+    help=f"Keep --out/{toy_runs.FOLDER}/ (every run's results) when the study ends, to combine "
+    "studies of other --losses into one with --resume (docs/results/toy/README.md).",
+)
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 def toy_cmd(
     flower: Path,
@@ -217,6 +223,7 @@ def toy_cmd(
     device: str,
     threads: int,
     resume: bool,
+    keep_runs: bool,
     quiet: bool,
 ) -> None:
     """Toy problems (thesis §4.6, Table 4.1): optimise the centre frame's depth of Flower and
@@ -271,7 +278,8 @@ def toy_cmd(
     results["seconds"] = round(seconds, 1)
     results["device"] = str(dev)
     write_outputs(out, results, best, scenes)
-    toy_runs.remove(out)
+    if not keep_runs:
+        toy_runs.remove(out)
     resumed = f" ({len(done)} of them resumed)" if done else ""
     click.echo(f"{_summary(results, seconds)}{resumed}; results in {out}")
 
