@@ -236,6 +236,31 @@ def test_halves_run_apart_combine_into_the_whole_study(tmp_path):
         "photometric", "tv/odm-off", "tv/odm-on"]  # fmt: skip
 
 
+def test_runs_computed_alone_or_by_worker_processes_are_the_study_s(tmp_path):
+    """compute_run gives each run of run_study bit for bit; toy_jobs.run_parallel (2 spawned
+    workers) hands every run to on_done, costliest first, and run_study assembles the same
+    study from them, computing nothing."""
+    from benchmark.unsupervised import toy_jobs
+
+    scenes, cfg = _tiny_study()
+    whole, whole_best = toy.run_study(scenes, cfg)
+    assert toy.run_keys(cfg) == ["photometric", "tv/odm-off", "tv/odm-on", "diffusion/odm-off",
+                                 "diffusion/odm-on"]  # fmt: skip
+    block, best = toy.compute_run(scenes, cfg, "diffusion/odm-on")
+    assert _untimed(block) == _untimed(whole["runs"]["diffusion/odm-on"])
+    assert torch.equal(best.depth["flower"], whole_best["diffusion/odm-on"].depth["flower"])
+    keys = ["photometric", "tv/odm-off", "robust_diffusion/odm-on", "diffusion/odm-off"]
+    assert toy_jobs.schedule(keys) == ["robust_diffusion/odm-on", "tv/odm-off",
+                                       "diffusion/odm-off", "photometric"]  # fmt: skip
+    seen = []
+    done = {"photometric": (whole["photometric"], whole_best["photometric"])}
+    computed = toy_jobs.run_parallel(scenes, cfg, 2, done, lambda k, b, r: seen.append(k))
+    assert sorted(seen) == sorted(computed) == sorted(toy.run_keys(cfg)[1:])
+    rest = []
+    assembled, _ = toy.run_study(scenes, cfg, on_run=rest.append, done={**done, **computed})
+    assert rest == [] and json.dumps(_untimed(assembled)) == json.dumps(_untimed(whole))
+
+
 def test_resume_settings_name_what_changed_and_bad_run_files_are_one_line_errors(tmp_path):
     scenes, cfg = _tiny_study()
     settings = toy_runs.settings(cfg, scenes)
@@ -399,6 +424,24 @@ def test_an_interrupted_study_resumed_writes_the_uninterrupted_outputs(
     for name in names:  # table.md and the figures, byte for byte
         if name not in (RESULTS_JSON, DEPTHS_NPZ):
             assert (out / name).read_bytes() == (quick_study / name).read_bytes(), name
+
+
+@pytest.mark.render
+def test_jobs_write_the_study_of_one_process(toy_data, quick_study, tmp_path):
+    """`--quick --jobs 2`: the same results.json (timings apart), depths.npz and table.md as
+    the study run in one process; --jobs with --threads > 1 is one line naming --jobs."""
+    data = ("--flower", toy_data["flower"], "--horizon", toy_data["horizon"])
+    out = tmp_path / "jobs"
+    _invoke(*data, "--out", out, "--quick", "--quiet", "--jobs", 2)
+    whole = json.loads((quick_study / RESULTS_JSON).read_text())
+    assert json.dumps(_untimed(json.loads((out / RESULTS_JSON).read_text()))) == json.dumps(
+        _untimed(whole)
+    )
+    assert (out / TABLE_MD).read_text() == (quick_study / TABLE_MD).read_text()
+    with np.load(quick_study / DEPTHS_NPZ) as a, np.load(out / DEPTHS_NPZ) as b:
+        assert a.files == b.files and all(np.array_equal(a[k], b[k]) for k in a.files)
+    with pytest.raises(UserError, match="^--jobs: .*--threads 2$"):
+        _invoke(*data, "--out", tmp_path / "x", "--quick", "--jobs", 2, "--threads", 2)
 
 
 @pytest.mark.render

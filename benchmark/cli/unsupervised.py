@@ -27,7 +27,7 @@ from ..core.config import default
 from ..core.registry import UNSUPERVISED_RECIPE
 from ..unsupervised import finetune as finetune_lib
 from ..unsupervised import toy as study
-from ..unsupervised import toy_plots, toy_runs
+from ..unsupervised import toy_jobs, toy_plots, toy_runs
 from ..unsupervised.reprojection import SMOOTH_LOSSES
 from ..unsupervised.sequence_eval import PAIR_TARGET_DEPTH, SEQUENCE_LENGTH
 from ..unsupervised.training import smooth_settings
@@ -204,6 +204,15 @@ def _summary(results: dict, seconds: float) -> str:
     f"--out/{toy_runs.FOLDER}/ until the study ends) with the same settings and data.",
 )
 @click.option(
+    "--jobs",
+    type=int,
+    default=1,
+    show_default=True,
+    help="Worker processes running the study's runs side by side, one thread each, costliest "
+    "first (the results do not depend on it). On a shared machine N processes keep their pace "
+    "where N kernel threads (--threads) wait for each other.",
+)
+@click.option(
     "--keep-runs",
     is_flag=True,
     help=f"Keep --out/{toy_runs.FOLDER}/ (every run's results) when the study ends, to combine "
@@ -223,6 +232,7 @@ def toy_cmd(
     device: str,
     threads: int,
     resume: bool,
+    jobs: int,
     keep_runs: bool,
     quiet: bool,
 ) -> None:
@@ -239,6 +249,9 @@ def toy_cmd(
     _positive("--iterations", iterations)
     _positive("--odm-every", odm_every)
     _positive("--threads", threads)
+    _positive("--jobs", jobs)
+    if jobs > 1 and threads > 1:
+        raise UserError(f"--jobs: its workers run one thread each; drop --threads {threads}")
     dev = torch_device(device)
     cfg = (
         study.StudyConfig.quick(iterations)
@@ -263,14 +276,25 @@ def toy_cmd(
     bar = tqdm(total=cfg.runs * cfg.iterations, initial=len(done) * cfg.iterations, unit="it",
                disable=quiet, dynamic_ncols=True)  # fmt: skip
     t0 = time.perf_counter()
+
+    def save(key: str, block: dict, b: study.BestRun) -> None:
+        toy_runs.save(out, key, block, b, settings)
+        if jobs > 1:  # the workers' steps are not seen here: a run at a time
+            bar.set_description(key)
+            bar.update(cfg.iterations)
+
     with bar:
+        computed = {}
+        if jobs > 1:
+            bar.set_description(f"{jobs} workers")
+            computed = toy_jobs.run_parallel(scenes, cfg, jobs, done, save)
         results, best = study.run_study(
             [s.to(dev) for s in scenes],
             cfg,
             on_run=bar.set_description,
             on_step=bar.update,
-            done=done,
-            on_done=lambda key, block, b: toy_runs.save(out, key, block, b, settings),
+            done={**done, **computed},
+            on_done=save,
         )
     # a resumed study's time: this command's wall time and the resumed runs' own
     earlier = sum(block["seconds"] for block, _ in done.values())

@@ -712,6 +712,25 @@ def _grid_run(
     return block, _best_run(run_key(loss, odm), run, problem.scenes, block["best"]["index"])
 
 
+def run_keys(cfg: StudyConfig) -> list[str]:
+    """Keys of the study's runs, in the order :func:`run_study` runs them."""
+    return ["photometric"] + [run_key(loss, odm) for loss in cfg.losses for odm in cfg.odm]
+
+
+def compute_run(scenes: Sequence[ToyScene], cfg: StudyConfig, key: str, on_step=None) -> Finished:
+    """Run ``key`` of the study alone (as :func:`run_study` computes it: the same results, bit
+    for bit), e.g. in a worker process of ``stillbox-bench toy --jobs``."""
+    scenes = list(scenes)
+    le0 = initial_log_errors(scenes)
+    if key == "photometric":
+        return _photometric_run(scenes, le0, cfg, on_step)
+    loss, _, setting = key.partition("/odm-")
+    lam, kap = grid(cfg)
+    device = scenes[0].frames.device
+    problem = Problem(scenes, lam.to(device), kap.to(device))
+    return _grid_run(problem, loss, setting == "on", le0, cfg, on_step)
+
+
 def run_study(
     scenes: Sequence[ToyScene],
     cfg: StudyConfig,
