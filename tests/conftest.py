@@ -139,6 +139,18 @@ def alive_of(procs: dict[int, int]) -> list[int]:
     return [pid for pid, start in procs.items() if (st := _proc_stat(pid)) and st[1] == start]
 
 
+@pytest.fixture(scope="module")
+def one_torch_thread():
+    """One torch thread for a test module (``pytestmark = pytest.mark.usefixtures(...)``): its
+    64 px tiny networks gain nothing from more, and on a busy machine extra threads wait."""
+    import torch
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
 @pytest.fixture(scope="session")
 def photo_dir(tmp_path_factory) -> Path:
     """A folder of a few synthetic 'photos' (smooth colour noise) for --textures."""

@@ -30,12 +30,7 @@ MOTION = ("--speed", 3, "--fps", 10)
 TINY = ("--batch-size", 2, "--threads", 1, "--quiet")
 
 
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.fixture(scope="module")

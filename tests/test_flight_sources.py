@@ -29,12 +29,7 @@ D0 = 0.3  # m, the checkpoints' nominal displacement
 CPU = torch.device("cpu")
 
 
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def checkpoint(path: Path, name: str, finest=None) -> Path:

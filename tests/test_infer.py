@@ -93,14 +93,7 @@ def _write_folder(path: Path, frames: list[np.ndarray]) -> Path:
     return path
 
 
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    """One torch thread: the 64 px tiny network gains nothing from more, and a busy machine
-    (tests run beside trainings) makes extra threads wait."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.fixture(scope="module")
