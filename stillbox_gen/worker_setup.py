@@ -39,9 +39,14 @@ class WorkerSetup:
     threads: int  # Cycles threads per worker; 0 = all cores
     textures_dir: str | None  # the --textures folder (photos), None for the bundled ones
     device: str = CPU_DEVICE  # CPU_DEVICE or a GPU backend (workers.choose_device)
+    # time Cycles' sync, sampling and result apart (stillbox_gen.phases), from its status
+    # messages: a Python call per message, about 30 a frame; changes no pixel
+    profile: bool = False
 
 
-def worker_setup(cfg: DatasetConfig, threads: int, device: str = CPU_DEVICE) -> WorkerSetup:
+def worker_setup(
+    cfg: DatasetConfig, threads: int, device: str = CPU_DEVICE, profile: bool = False
+) -> WorkerSetup:
     """The worker set-up rendering the scenes of ``cfg`` with ``threads`` Cycles threads on the
-    Cycles ``device``."""
-    return WorkerSetup(cfg.render, threads, cfg.materials.textures_dir, device)
+    Cycles ``device`` (``profile``: see WorkerSetup)."""
+    return WorkerSetup(cfg.render, threads, cfg.materials.textures_dir, device, profile)

@@ -7,6 +7,11 @@ frame-change handler sets each frame's pose and seed) to temporary multilayer EX
 written as 8-bit sRGB + float32 depth. The files are byte-identical to those of one still render
 per frame (compared file by file when this replaced the stills), and a 64 px worker spends about
 10 % less time per frame.
+
+Each scene's statistics hold the wall and CPU seconds of its phases (stillbox_gen.phases): the
+animation render is split per frame by Blender's render_pre, frame_change_post and render_post
+handlers (:class:`_RenderClock`), and with ``WorkerSetup.profile`` Cycles' own time further into
+sync, sampling and result by its render status messages (the render_stats handler).
 """
 
 from __future__ import annotations
@@ -20,7 +25,7 @@ import bpy
 import cv2
 import numpy as np
 
-from .. import config, formats, layout
+from .. import config, formats, layout, phases
 from ..worker_setup import WorkerSetup
 from . import build, devices
 
@@ -76,10 +81,101 @@ def init_worker(setup: WorkerSetup, silence_stdout: bool = True) -> None:
     img.file_format = "OPEN_EXR_MULTILAYER"
     img.color_depth = "16"  # the Z pass stays float32 in half-float EXRs
     img.exr_codec = "NONE"  # temporary files, read back at once: compressing them is wasted time
-    _STATE.update(setup=setup, scenes=0, job=None)
-    handlers = bpy.app.handlers.frame_change_pre
-    if _pose_frame not in handlers:
-        handlers.append(_pose_frame)
+    _STATE.update(setup=setup, scenes=0, job=None, clock=None)
+    _set_handler(bpy.app.handlers.frame_change_pre, _pose_frame, True)
+    _set_handler(bpy.app.handlers.render_pre, _clock_render_pre, True)
+    _set_handler(bpy.app.handlers.frame_change_post, _clock_frame_change_post, True)
+    _set_handler(bpy.app.handlers.render_post, _clock_render_post, True)
+    _set_handler(bpy.app.handlers.render_stats, _clock_render_stats, setup.profile)
+    # wall and CPU s from process start to here: the first scene's statistics carry them
+    _STATE["startup"] = [phases.process_age(), time.process_time()]
+
+
+def _set_handler(handlers: list, handler, on: bool) -> None:
+    """Register ``handler`` in Blender's handler list ``handlers`` once, or remove it."""
+    if on and handler not in handlers:
+        handlers.append(handler)
+    elif not on and handler in handlers:
+        handlers.remove(handler)
+
+
+class _RenderClock:
+    """The phases of one animation render (stillbox_gen.phases), from Blender's handler calls.
+
+    Blender 5 calls, per frame f: render_pre, frame_change_pre (:func:`_pose_frame`),
+    frame_change_post, then Cycles syncs, samples and hands the result over, the temporary EXR
+    is written, then render_post; after the last frame it restores the scene's current frame
+    (another frame change). Each call closes the running phase: render call to the first
+    render_pre is ``render_setup``; render_pre to frame_change_post (and render_post to the next
+    render_pre) ``frame_step``; frame_change_post to render_post ``cycles``; the last render_post
+    to the end of the call ``render_finish``. With ``detail``, Cycles' status messages
+    (render_stats: "... | Sample 0/4", "... | Finished") split ``cycles`` into ``cycles_sync``,
+    ``cycles_sampling`` and ``cycles_result``, and ``cycles`` is their sum. A call out of that
+    order (none seen) changes nothing: its time stays in the running phase.
+    """
+
+    def __init__(self, times: phases.PhaseTimes, last_frame: int, detail: bool):
+        self.times, self.last_frame, self.detail = times, last_frame, detail
+        self.phase: str | None = "render_setup"
+        self.wall, self.cpu = phases.clocks()
+
+    def switch(self, phase: str | None) -> None:
+        """Close the running phase now and start ``phase`` (None: stop)."""
+        wall, cpu = phases.clocks()
+        if self.phase is not None:
+            self.times.add(self.phase, wall - self.wall, cpu - self.cpu)
+        self.phase, self.wall, self.cpu = phase, wall, cpu
+
+    def render_pre(self) -> None:
+        if self.phase in ("render_setup", "frame_step"):
+            self.switch("frame_step")
+
+    def frame_change_post(self) -> None:
+        if self.phase == "frame_step":
+            self.switch("cycles_sync" if self.detail else "cycles")
+
+    def status(self, text: str) -> None:
+        if self.phase == "cycles_sync" and "| Sample " in text:
+            self.switch("cycles_sampling")
+        elif self.phase == "cycles_sampling" and "| Finished" in text:
+            self.switch("cycles_result")
+
+    def render_post(self, frame: int) -> None:
+        if self.phase is not None and self.phase.startswith("cycles"):
+            self.switch("render_finish" if frame >= self.last_frame else "frame_step")
+
+    def stop(self) -> None:
+        """Close the running phase; with ``detail``, add ``cycles`` as the sum of its parts."""
+        self.switch(None)
+        if self.detail:
+            parts = phases.CYCLES_PARTS
+            wall = sum(self.times.wall.get(k, 0.0) for k in parts)
+            cpu = sum(self.times.cpu.get(k, 0.0) for k in parts)
+            self.times.add("cycles", wall, cpu)
+
+
+@bpy.app.handlers.persistent
+def _clock_render_pre(scene, depsgraph=None) -> None:
+    if (clock := _STATE.get("clock")) is not None:
+        clock.render_pre()
+
+
+@bpy.app.handlers.persistent
+def _clock_frame_change_post(scene, depsgraph=None) -> None:
+    if (clock := _STATE.get("clock")) is not None:
+        clock.frame_change_post()
+
+
+@bpy.app.handlers.persistent
+def _clock_render_post(scene, depsgraph=None) -> None:
+    if (clock := _STATE.get("clock")) is not None:
+        clock.render_post(scene.frame_current)
+
+
+@bpy.app.handlers.persistent
+def _clock_render_stats(text: str) -> None:
+    if (clock := _STATE.get("clock")) is not None:
+        clock.status(text)
 
 
 @bpy.app.handlers.persistent
@@ -170,16 +266,23 @@ def _probe_bytes(render) -> int:
 def render_scene(spec: dict, out_dir: str, image_format: str, legacy: bool) -> dict:
     """Render every frame of a SceneSpec dict into ``out_dir`` (a temporary folder).
 
-    Files are named as in formats.py; returns timing and memory statistics. When a file cannot
-    be written or read back for lack of space, raises the OSError of a full disk
-    (formats.is_disk_full): the run stops there instead of retrying the scene.
+    Files are named as in formats.py. Returns statistics: ``seconds`` and ``cpu_seconds`` (wall
+    and CPU s of this call), ``build_seconds`` (wall s of the scene build), ``phases``
+    ({phase name: [wall s, CPU s]}, stillbox_gen.phases; the first scene of a worker process
+    also holds its ``startup``), ``process_cpu_seconds`` (the process's CPU s so far),
+    ``peak_rss_mb``, ``pid``. When a file cannot be written or read back for lack of space,
+    raises the OSError of a full disk (formats.is_disk_full): the run stops there instead of
+    retrying the scene.
     """
-    t0 = time.perf_counter()
+    t0, c0 = phases.clocks()
+    times = phases.PhaseTimes()
+    if (startup := _STATE.get("startup")) is not None:  # removed once a scene succeeds
+        times.add("startup", *startup)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     scene = bpy.context.scene
-    cam = load_scene(spec)
-    t_build = time.perf_counter() - t0
+    with times.measure("build"):
+        cam = load_scene(spec)
     local = layout.local_index(spec["index"])
     # full-resolution chroma (4:4:4): 4:2:0 JPEGs differ from the PNGs by about 6/255 on average
     params = [
@@ -193,30 +296,45 @@ def render_scene(spec: dict, out_dir: str, image_format: str, legacy: bool) -> d
     scene.render.filepath = str(out / "_render_##")
     _STATE["job"] = {"camera": cam, "poses": poses, "seed": spec["seed"]}
     try:
+        clock = _RenderClock(times, len(poses) - 1, _STATE["setup"].profile)
+        _STATE["clock"] = clock
         try:
             bpy.ops.render.render(animation=True)
         finally:
-            _STATE["job"] = None
+            _STATE["job"] = _STATE["clock"] = None
+            clock.stop()
         for f in range(len(poses)):
             tmp = Path(scene.render.frame_path(frame=f))
-            rgb, depth = frame_arrays(tmp)
-            tmp.unlink()
+            with times.measure("exr_read"):
+                linear, depth = _channels(tmp)
+                tmp.unlink()
+            with times.measure("to_srgb"):
+                rgb = formats.linear_to_srgb8(linear)  # as frame_arrays gives it
             bgr = rgb[..., ::-1]
-            _imwrite(out / layout.rgb_name(local, f, image_format), bgr, params)
-            formats.write_depth_exr(out / layout.depth_name(local, f), depth)
+            with times.measure("rgb_write"):
+                _imwrite(out / layout.rgb_name(local, f, image_format), bgr, params)
+            with times.measure("depth_write"):
+                formats.write_depth_exr(out / layout.depth_name(local, f), depth)
             if legacy:
                 if image_format != "jpg":
-                    _imwrite(out / layout.rgb_name(local, f, "jpg"), bgr, params)
-                np.save(out / layout.depth_name(local, f, "npy"), depth)
+                    with times.measure("rgb_write"):
+                        _imwrite(out / layout.rgb_name(local, f, "jpg"), bgr, params)
+                with times.measure("depth_write"):
+                    np.save(out / layout.depth_name(local, f, "npy"), depth)
     except Exception as e:
         if not formats.is_disk_full(e):  # Blender and OpenCV write without reporting errno
             formats.check_space(out, _probe_bytes(scene.render))
         raise
     _STATE["scenes"] += 1
+    _STATE.pop("startup", None)
+    t1, c1 = phases.clocks()
     return {
         "index": spec["index"],
-        "seconds": time.perf_counter() - t0,
-        "build_seconds": t_build,
+        "seconds": t1 - t0,
+        "cpu_seconds": c1 - c0,
+        "build_seconds": times.wall["build"],
+        "phases": times.to_dict(),
+        "process_cpu_seconds": c1,
         "frames": len(poses),
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
         "pid": os.getpid(),
