@@ -1,6 +1,8 @@
 """The run loop of ``stillbox-gen generate``: prepare the output folder, render the pending
 scenes in a pool of Blender workers (local processes, or Ray actors with ``--backend ray``),
-commit each scene as it finishes, then index the dataset.
+commit each scene as it finishes, then index the dataset. The run's phases (stillbox_gen.phases)
+are timed on the way, the driver's here and the workers' from each scene's statistics, into
+``Summary.profile``.
 
 A scene is complete exactly when its record exists (stillbox_gen.writer.commit_scene), so a
 killed run resumes where it stopped. A worker that dies, or a pool in which no scene finishes
@@ -22,6 +24,7 @@ from tqdm import tqdm
 from . import formats, layout, writer
 from .config import CPU_DEVICE, DatasetConfig
 from .lock import folder_lock
+from .phases import RunProfile
 from .scene import sample_scene
 from .workers import LocalPool
 
@@ -44,6 +47,9 @@ class RunOptions:
     # Cycles device of local workers: CPU_DEVICE or a GPU backend (workers.choose_device gives
     # it for --device); it changes no scene. Ray actors render on CPUs.
     device: str = CPU_DEVICE
+    # time Cycles' sync, sampling and result apart in local workers (WorkerSetup.profile);
+    # every other phase is timed in every run
+    profile: bool = False
 
 
 @dataclass
@@ -59,6 +65,7 @@ class Summary:
     peak_rss_mb: float = 0.0
     split_counts: dict = field(default_factory=dict)
     failures: list = field(default_factory=list)  # "scene k: why", one per failed attempt
+    profile: RunProfile = field(default_factory=RunProfile)  # where the time went
 
     def lines(self) -> list[str]:
         fps = self.rendered_frames_per_second
@@ -87,7 +94,7 @@ def new_pool(cfg: DatasetConfig, opts: RunOptions):
         from .ray_pool import RayPool
 
         return RayPool(*args)
-    return LocalPool(*args, opts.device)
+    return LocalPool(*args, opts.device, opts.profile)
 
 
 class _Scheduler:
@@ -108,7 +115,9 @@ class _Scheduler:
         self.attempts: dict[int, int] = {}
         self.running: dict[Future, dict] = {}
         self.broken = False  # set when submit() found the pool broken
-        self.pool = new_pool(cfg, opts)
+        self.times = summary.profile
+        with self.times.measure("pool_start"):
+            self.pool = new_pool(cfg, opts)
 
     def run(self) -> None:
         try:
@@ -122,7 +131,8 @@ class _Scheduler:
                     self._replace([], "")
                     continue
                 timeout = self.opts.scene_timeout
-                done, _ = wait(self.running, timeout=timeout, return_when=FIRST_COMPLETED)
+                with self.times.measure("wait"):
+                    done, _ = wait(self.running, timeout=timeout, return_when=FIRST_COMPLETED)
                 if not done:  # watchdog: nothing finished in time, assume a hung worker
                     stuck = list(self.running.values())
                     self._replace(stuck, f"no scene finished within {timeout:g} s (hung worker)")
@@ -133,19 +143,22 @@ class _Scheduler:
         except BaseException:
             self.pool.kill()
             raise
-        self.pool.shutdown()
+        with self.times.measure("pool_stop"):
+            self.pool.shutdown()
 
     def _submit_next(self) -> None:
         if not self.queue:
             return
         index = self.queue.pop()
-        spec = sample_scene(self.cfg, index).to_dict()
-        tmp = self.opts.out / layout.scene_tmp_name(index)
-        formats.remove_tree(tmp)
-        tmp.mkdir(parents=True)
+        with self.times.measure("sample"):
+            spec = sample_scene(self.cfg, index).to_dict()
+            tmp = self.opts.out / layout.scene_tmp_name(index)
+            formats.remove_tree(tmp)
+            tmp.mkdir(parents=True)
         r = self.cfg.render
         try:
-            fut = self.pool.submit(spec, tmp, r.image_format, r.legacy)
+            with self.times.measure("submit"):
+                fut = self.pool.submit(spec, tmp, r.image_format, r.legacy)
         except self.pool.died_errors:  # a worker died since the last check: replaced soon
             self.queue.append(index)
             self.broken = True
@@ -170,8 +183,9 @@ class _Scheduler:
             self._retry([spec], f"{type(e).__name__}: {e}")
             self._submit_next()
             return None
-        _write_returned_files(self.opts.out / layout.scene_tmp_name(spec["index"]), stats)
-        writer.commit_scene(self.opts.out, spec, self.cfg)
+        with self.times.measure("commit"):
+            _write_returned_files(self.opts.out / layout.scene_tmp_name(spec["index"]), stats)
+        writer.commit_scene(self.opts.out, spec, self.cfg, self.times.times)
         self.on_done(stats)
         self._submit_next()
         return None
@@ -183,7 +197,8 @@ class _Scheduler:
         self.broken = False
         self.pool.kill()
         self._retry(failed, why)
-        self.pool = new_pool(self.cfg, self.opts)
+        with self.times.measure("pool_start"):
+            self.pool = new_pool(self.cfg, self.opts)
         self._fill()
 
     def _retry(self, specs: list[dict], why: str) -> None:
@@ -224,6 +239,7 @@ def render_pending(cfg: DatasetConfig, opts: RunOptions, todo: list[int], summar
     def done(stats: dict) -> None:
         summary.rendered_now += 1
         summary.peak_rss_mb = max(summary.peak_rss_mb, stats["peak_rss_mb"])
+        summary.profile.add_scene(stats)
         bar.update(1)
         elapsed = time.perf_counter() - t0
         bar.set_postfix(fps=f"{summary.rendered_now * cfg.camera.frames / elapsed:.1f}")
@@ -259,10 +275,12 @@ def generate(cfg: DatasetConfig, opts: RunOptions, announce=lambda: None) -> Sum
 def _generate(cfg: DatasetConfig, opts: RunOptions, announce) -> Summary:
     """:func:`generate` once the folder's lock is held."""
     device = CPU_DEVICE if opts.backend == "ray" else opts.device
-    devices = writer.prepare_output(opts.out, cfg, opts.scenes, device)
-    announce()
-    todo = writer.pending_indices(opts.out, opts.scenes, opts.shard)
     summary = Summary()
+    with summary.profile.measure("prepare"):
+        devices = writer.prepare_output(opts.out, cfg, opts.scenes, device)
+    announce()
+    with summary.profile.measure("prepare"):
+        todo = writer.pending_indices(opts.out, opts.scenes, opts.shard)
     t0 = time.perf_counter()
     if opts.backend == "ray" and todo:
         from .ray_pool import ray_session
@@ -281,9 +299,14 @@ def _generate(cfg: DatasetConfig, opts: RunOptions, announce) -> Summary:
         "peak_rss_mb_per_worker": round(summary.peak_rss_mb, 1),
         "failures": summary.failures,
     }
-    if writer.pending_indices(opts.out, opts.scenes):  # other shards still have work
+    with summary.profile.measure("finalize"):
+        pending = writer.pending_indices(opts.out, opts.scenes)
+    if pending:  # other shards still have work
         return dataclasses.replace(summary, seconds=seconds, scenes=opts.scenes)
-    totals = writer.finalize(opts.out, cfg, opts.scenes, run_info, devices)
+    with summary.profile.measure("finalize"):
+        totals = writer.finalize(opts.out, cfg, opts.scenes, run_info, devices)
+    with summary.profile.measure("size"):
+        size = folder_size(opts.out)
     return dataclasses.replace(
         summary,
         scenes=totals.scenes,
@@ -291,5 +314,5 @@ def _generate(cfg: DatasetConfig, opts: RunOptions, announce) -> Summary:
         rejected=totals.rejected,
         split_counts=totals.split_counts,
         seconds=seconds,
-        bytes=folder_size(opts.out),
+        bytes=size,
     )

@@ -218,8 +218,10 @@ class LocalPool:
         threads: int,
         recycle_after: int,
         device: str = CPU_DEVICE,
+        profile: bool = False,
     ):
-        self._pool = process_pool(workers, worker_setup(cfg, threads, device), recycle_after)
+        setup = worker_setup(cfg, threads, device, profile)
+        self._pool = process_pool(workers, setup, recycle_after)
 
     def submit(self, spec: dict, tmp_dir: Path, image_format: str, legacy: bool) -> Future:
         with sigterm_deferred():  # submit may spawn a worker

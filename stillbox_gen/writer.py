@@ -23,6 +23,7 @@ from .arguments import check_out_folder
 from .config import CPU_DEVICE, DatasetConfig, denoise_quality
 from .errors import ConfigError, DatasetError
 from .lock import folder_lock
+from .phases import PhaseTimes, measure
 from .record import scene_record
 
 # ---------------------------------------------------------------- what dataset.json says
@@ -189,19 +190,26 @@ def scene_checksums(folder: Path, record: dict) -> dict[str, str]:
     return {name: formats.file_sha256(Path(folder) / name) for name in layout.scene_files(record)}
 
 
-def commit_scene(out: Path, spec: dict, cfg: DatasetConfig) -> dict:
+def commit_scene(
+    out: Path, spec: dict, cfg: DatasetConfig, times: PhaseTimes | None = None
+) -> dict:
     """Move a scene rendered into its temporary folder (layout.scene_tmp_name) into its chunk,
-    then write its record (the completion mark) with the SHA-256 of every file of the scene."""
+    then write its record (the completion mark) with the SHA-256 of every file of the scene.
+    With ``times``, the hashing is timed there as phase ``hash``, the rest as ``commit``
+    (stillbox_gen.phases)."""
     tmp = out / layout.scene_tmp_name(spec["index"])
     chunk_dir = tmp.parent
-    record = scene_record(spec, cfg.render.image_format, cfg.render.legacy)
-    record["sha256"] = scene_checksums(tmp, record)
-    for f in sorted(tmp.iterdir()):
-        os.replace(f, chunk_dir / f.name)
-    rec_path = layout.record_path(out, spec["index"])
-    rec_path.parent.mkdir(exist_ok=True)
-    formats.atomic_write_json(rec_path, record)
-    formats.remove_tree(tmp)
+    with measure(times, "commit"):
+        record = scene_record(spec, cfg.render.image_format, cfg.render.legacy)
+    with measure(times, "hash"):
+        record["sha256"] = scene_checksums(tmp, record)
+    with measure(times, "commit"):
+        for f in sorted(tmp.iterdir()):
+            os.replace(f, chunk_dir / f.name)
+        rec_path = layout.record_path(out, spec["index"])
+        rec_path.parent.mkdir(exist_ok=True)
+        formats.atomic_write_json(rec_path, record)
+        formats.remove_tree(tmp)
     return record
 
 
