@@ -6,7 +6,9 @@ rendering, writing, indexing) into a temporary folder, then re-renders a few of 
 8-bit sRGB frames against them. Speed ratios are taken against the ``plain`` configuration, which
 is measured in the same invocation. A fixed CPU workload (:func:`reference_loop`) is timed before
 and after the whole benchmark, so that tables measured in different machine states (a VM's
-drifting speed, other jobs) can be compared.
+drifting speed, other jobs) can be compared. With ``profile``, each timed run is followed by the
+table of where its time went (stillbox_gen.phases.profile_table), Cycles' time split into sync,
+sampling and result.
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import config, formats, generate, layout
+from . import config, formats, generate, layout, phases
 from .dataset import Dataset
 from .errors import ConfigError
 from .scene import sample_scene
@@ -124,15 +126,16 @@ def reference_psnr(
     frames: list[int],
     workers: int,
     device: str = config.CPU_DEVICE,
+    threads: int = 0,
 ) -> float:
     """Mean PSNR of the dataset's frames against REFERENCE_SAMPLES-sample renders of them
-    (on the same Cycles ``device``)."""
+    (on the same Cycles ``device``, ``threads`` Cycles threads per worker, 0 = all cores)."""
     reference = config.replace(cfg, render={"samples": REFERENCE_SAMPLES, "denoise": False})
     values = []
     ds = Dataset(root)
     with (
         tempfile.TemporaryDirectory() as tmp,
-        process_pool(workers, worker_setup(reference, 0, device)) as pool,
+        process_pool(workers, worker_setup(reference, threads, device)) as pool,
     ):
         jobs = []
         for k in range(scenes):
@@ -157,10 +160,14 @@ def run_bench(
     workdir: Path,
     log=print,
     device: str = config.CPU_DEVICE,
+    profile: bool = False,
+    threads: int = 0,
 ) -> list[BenchRow]:
-    """Measure every (resolution, configuration) on the Cycles ``device`` (workers.choose_device);
-    ``resolutions`` holds (pixels, scenes) pairs. Every row also holds the reference loop's
-    time before and after the whole measurement (:func:`reference_seconds`)."""
+    """Measure every (resolution, configuration) on the Cycles ``device`` (workers.choose_device)
+    with ``threads`` Cycles threads per worker (0 = all cores); ``resolutions`` holds (pixels,
+    scenes) pairs. Every row also holds the reference loop's time before and after the whole
+    measurement (:func:`reference_seconds`). With ``profile``, ``log`` also gets each timed
+    run's profile table (phases.profile_table)."""
     before = reference_seconds()
     rows = []
     for res, scenes in resolutions:
@@ -170,13 +177,22 @@ def run_bench(
             out = workdir / f"{res}-{name}"
             formats.remove_tree(out)
             opts = generate.RunOptions(
-                out=out, scenes=scenes, workers=workers, progress=False, device=device
+                out=out,
+                scenes=scenes,
+                workers=workers,
+                progress=False,
+                threads=threads,
+                device=device,
+                profile=profile,
             )
-            t0 = time.perf_counter()
-            generate.generate(cfg, opts)
-            seconds = time.perf_counter() - t0
+            t0, c0 = phases.clocks()
+            summary = generate.generate(cfg, opts)
+            t1, c1 = phases.clocks()
+            seconds = t1 - t0
             frames = [0, cfg.camera.frames - 1]
-            quality = reference_psnr(cfg, out, min(psnr_scenes, scenes), frames, workers, device)
+            quality = reference_psnr(
+                cfg, out, min(psnr_scenes, scenes), frames, workers, device, threads
+            )
             r = cfg.render
             row = BenchRow(
                 res=res,
@@ -192,6 +208,13 @@ def run_bench(
             )
             rows.append(row)
             log(f"{res:>4} px  {name:<8} {row.fps:6.1f} frames/s  PSNR {quality:5.1f} dB")
+            if profile:
+                frames_rendered = summary.rendered_now * cfg.camera.frames
+                table = phases.profile_table(
+                    summary.profile, frames_rendered, seconds, workers, c1 - c0
+                )
+                log(f"profile of {res} px {name} (whole generate call, {workers} workers):")
+                log(table)
             formats.remove_tree(out)
         base = next((r.fps for r in rows if r.res == res and r.config == "plain"), None)
         for r in rows:

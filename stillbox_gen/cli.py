@@ -501,6 +501,13 @@ def stats(dataset: Path, scenes: int, shift: int, flicker: int, out, max_depth: 
     help="Blender worker processes.",
 )
 @click.option(
+    "--threads",
+    type=int,
+    default=_run_default("threads"),
+    show_default=True,
+    help="Cycles threads per worker (0 = all cores).",
+)
+@click.option(
     "--psnr-scenes",
     type=int,
     default=2,
@@ -509,8 +516,21 @@ def stats(dataset: Path, scenes: int, shift: int, flicker: int, out, max_depth: 
 )
 @_DEVICE
 @click.option("--csv", "csv_path", type=PathArg(), help="Also write the table here.")
+@click.option(
+    "--profile",
+    is_flag=True,
+    help="After each timed run, print where its time went per frame (phases of the workers "
+    "and the driver, wall and CPU ms; Cycles' sync, sampling and result apart).",
+)
 def bench(
-    resolutions: str, configs: str, workers: int, psnr_scenes: int, device: str, csv_path
+    resolutions: str,
+    configs: str,
+    workers: int,
+    threads: int,
+    psnr_scenes: int,
+    device: str,
+    csv_path,
+    profile: bool,
 ) -> None:
     """Measure frames/s (whole process) and PSNR per resolution and configuration."""
     import tempfile
@@ -534,11 +554,18 @@ def bench(
     b.configurations(names)  # fails early on unknown names
     if workers < 1 or psnr_scenes < 1:
         raise ConfigError("--workers and --psnr-scenes: must be at least 1")
+    if threads < 0:
+        raise ConfigError(f"--threads: must be >= 0, got {threads}")
+    for flag, value in (("workers", workers), ("threads", threads)):
+        if problem := config.limit_problem(flag, value):
+            raise ConfigError(f"--{flag}: {problem}")
     device, device_line = choose_device(device)
     click.echo(f"environment: {generate_versions()}, {os.cpu_count()} CPUs", err=True)
     click.echo(device_line, err=True)
     with tempfile.TemporaryDirectory(prefix="stillbox-bench-") as tmp:
-        rows = b.run_bench(pairs, names, workers, psnr_scenes, Path(tmp), click.echo, device)
+        rows = b.run_bench(
+            pairs, names, workers, psnr_scenes, Path(tmp), click.echo, device, profile, threads
+        )
     click.echo(b.markdown_table(rows))
     if rows:
         click.echo(b.reference_line(rows))
