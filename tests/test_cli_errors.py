@@ -260,6 +260,14 @@ def test_unknown_bench_config_is_refused():
     assert_user_error(invoke_cli("bench", "--configs", "default,ultra"), "--configs: unknown ultra")
 
 
+@pytest.mark.parametrize(
+    "value, message",
+    [("-1", "--threads: must be >= 0, got -1"), ("2000", "--threads: must be at most 1,024")],
+)
+def test_bench_bad_threads_are_refused(value, message):
+    assert_user_error(invoke_cli("bench", "--threads", value), message)
+
+
 # ---------------------------------------------------------------- the in-process runner
 
 
