@@ -472,3 +472,19 @@ def test_merge_does_not_write_through_a_symlink_in_out(ds, tmp_path):
     assert_user_error(proc, f"scene 2 in '{ds}'", "leads through a symlink", str(elsewhere))
     after = {p: p.read_bytes() for p in sorted(elsewhere.rglob("*")) if p.is_file()}
     assert after == before
+
+
+def test_a_config_written_before_render_light_tree_keeps_its_meaning_and_fingerprint():
+    """dataset.json configs of datasets rendered before render.light_tree existed lack the key:
+    they read back with the light tree on (as they were rendered) and hash as they did, while
+    the current default (off) is written out and so changes the fingerprint."""
+    from stillbox_gen import config
+
+    new = config.load_preset("stillbox")
+    assert new.render.light_tree is False and new.to_dict()["render"]["light_tree"] is False
+    old = new.to_dict()
+    del old["render"]["light_tree"]
+    cfg = config.from_dict(old)
+    assert cfg.render.light_tree is True
+    assert cfg.to_dict() == old and cfg.fingerprint() != new.fingerprint()
+    assert config.from_dict(new.to_dict()) == new

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from conftest import CLI, assert_user_error, file_tree, invoke_cli, run_cli
 
-from stillbox_gen import camera, config, formats, layout, record, scene, workers
+from stillbox_gen import bench, camera, config, formats, layout, record, scene, workers
 from stillbox_gen.manifest import read_manifest
 from stillbox_gen.worker_setup import worker_setup
 
@@ -424,3 +424,29 @@ def test_default_scenes_have_stillbox_like_depth(default_dataset):
     assert s["depth"]["share_below_25m"] > 0.35
     assert 0.15 < s["walls_objects"]["wall_share"] < 0.75
     assert 8.0 < s["depth"]["median_m"] < 45.0
+
+
+def test_the_light_tree_setting_reaches_cycles_and_moves_no_pixel_far(tmp_path):
+    """render.light_tree (off by default since issue 26) changes how Cycles picks a light, not
+    what it shows: with our single sun, on and off give the same depth and colours within a
+    few 1/255 steps, and do differ (else the setting never reached Cycles)."""
+    base = config.load_preset("stillbox")
+    frames = {}
+    for on in (False, True):
+        cfg = config.replace(base, camera={"width": 64, "height": 64}, render={"light_tree": on})
+        spec = scene.sample_scene(cfg, 0)
+        spec.camera.cam2world = spec.camera.cam2world[:3]
+        out = tmp_path / str(on)
+        render_spec(spec, cfg, out)
+        frames[on] = [
+            (cv2.imread(str(out / layout.rgb_name(0, f))).astype(np.float64),
+             formats.read_depth_exr(out / layout.depth_name(0, f)))
+            for f in range(3)
+        ]  # fmt: skip
+    changed = 0
+    for (rgb_off, d_off), (rgb_on, d_on) in zip(frames[False], frames[True], strict=True):
+        np.testing.assert_array_equal(d_off, d_on)
+        assert np.abs(rgb_off - rgb_on).max() <= 8
+        assert bench.psnr(rgb_off.astype(np.uint8), rgb_on.astype(np.uint8)) > 50
+        changed += int(not np.array_equal(rgb_off, rgb_on))
+    assert changed > 0, "light_tree on and off rendered the same bytes"

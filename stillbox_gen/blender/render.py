@@ -46,6 +46,7 @@ def init_worker(setup: WorkerSetup, silence_stdout: bool = True) -> None:
     devices.use_device(setup.device)
     cy.samples = render.samples
     cy.use_adaptive_sampling = False
+    cy.use_light_tree = render.light_tree
     # Box filter one pixel wide: a pixel is the mean of its samples over its own area (no blur
     # across neighbours), i.e. anti-aliasing by area integration.
     cy.pixel_filter_type = "BOX"
