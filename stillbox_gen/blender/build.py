@@ -5,6 +5,7 @@ Nothing here draws random numbers: every value comes from the scene description.
 
 from __future__ import annotations
 
+import itertools
 import math
 from pathlib import Path
 
@@ -122,41 +123,77 @@ def _multiply(nodes, links, colour, name: str):
 
 def _set_material_values(nodes, spec: dict, textures_dir, footprint, emission) -> None:
     """Set the values of a MaterialSpec on a copy of its structure's template (make_material);
-    ``emission``: the ambient colour of an emitting surface, None for the others."""
-    bsdf = nodes["bsdf"]
-    bsdf.inputs["Roughness"].default_value = spec["roughness"]
-    bsdf.inputs["Metallic"].default_value = spec["metallic"]
+    ``emission``: the ambient colour of an emitting surface, None for the others.
+
+    Values are written by _set_inputs and _ramp_stops, which skip Blender's node-tree update,
+    except the last one, an assignment: its update tags the material as changed for Cycles.
+    Without it Cycles, whose data persists across scenes, can keep the shader of a previous
+    scene's material that had the same address (frames then changed from run to run).
+    """
+    bsdf = {"Metallic": spec["metallic"]}
     if spec["kind"] == "plain":
-        bsdf.inputs["Base Color"].default_value = (*spec["colors"][0], 1.0)
+        bsdf["Base Color"] = (*spec["colors"][0], 1.0)
         if emission is not None:
             rgb = [c * a for c, a in zip(spec["colors"][0], emission, strict=True)]
-            bsdf.inputs["Emission Color"].default_value = (*rgb, 1.0)
-        return
-    mapping = nodes["mapping"]
-    mapping.inputs["Location"].default_value = spec["offset"]
-    mapping.inputs["Rotation"].default_value = spec["rotation"]
-    mapping.inputs["Scale"].default_value = (spec["scale"],) * 3
+            bsdf["Emission Color"] = (*rgb, 1.0)
+    _set_inputs(nodes["bsdf"], bsdf)
+    if spec["kind"] != "plain":
+        _set_texture_values(nodes, spec, textures_dir, footprint, emission)
+    nodes["bsdf"].inputs["Roughness"].default_value = spec["roughness"]
+
+
+def _set_texture_values(nodes, spec: dict, textures_dir, footprint, emission) -> None:
+    """Values of the mapping, texture, tint or ramp and ambient nodes (_set_material_values)."""
+    mapping = {"Location": spec["offset"], "Rotation": spec["rotation"]}
+    _set_inputs(nodes["mapping"], mapping | {"Scale": (spec["scale"],) * 3})
     tex = nodes["texture"]
     if spec["kind"] == "image":
         tex.image = _photo(spec["image"], textures_dir, 1.0 / spec["scale"], footprint)
-        nodes["tint"].inputs["B"].default_value = (*spec["colors"][0], 1.0)
+        _set_inputs(nodes["tint"], {"B_Color": (*spec["colors"][0], 1.0)})
     else:
         _pattern_values(tex, spec["pattern"], spec["detail"])
         _ramp_stops(nodes["ramp"].color_ramp.elements, spec["positions"], spec["colors"])
     if emission is not None:
-        nodes["ambient"].inputs["B"].default_value = (*emission, 1.0)
+        _set_inputs(nodes["ambient"], {"B_Color": (*emission, 1.0)})
+
+
+# Node bl_idname -> (length of the flat array of its input values, socket identifier -> slice).
+_INPUT_LAYOUTS: dict[str, tuple[int, dict[str, slice]]] = {}
+
+
+def _set_inputs(node, values: dict) -> None:
+    """Set the default values of some input sockets of ``node`` (socket identifier -> float or
+    vector/colour sequence) with one foreach_set of all its inputs.
+
+    Assigning a socket's default_value runs Blender's node-tree update, about 30 us each;
+    foreach_set runs none (_set_material_values runs it once). Every input of the nodes written
+    here holds floats, so the inputs' values form one float32 array; the unchanged ones are
+    written back as read.
+    """
+    layout = _INPUT_LAYOUTS.get(node.bl_idname)
+    if layout is None:
+        slices, end = {}, 0
+        for socket in node.inputs:
+            start, end = end, end + np.size(socket.default_value)
+            slices[socket.identifier] = slice(start, end)
+        layout = _INPUT_LAYOUTS[node.bl_idname] = (end, slices)
+    size, slices = layout
+    flat = np.empty(size, np.float32)
+    node.inputs.foreach_get("default_value", flat)
+    for identifier, value in values.items():
+        flat[slices[identifier]] = value
+    node.inputs.foreach_set("default_value", flat)
 
 
 def _ramp_stops(elements, positions: list[float], colours: list) -> None:
-    """Move the ramp's stops to ``positions`` (ascending) with ``colours``. Blender keeps stops
-    sorted by position, so a stop must not pass its neighbours while it moves: stops moving down
-    are moved first, lowest first, then stops moving up, highest first."""
-    n = len(positions)
-    down = [i for i in range(n) if positions[i] < elements[i].position]
-    up = [i for i in reversed(range(n)) if i not in down]
-    for i in down + up:
-        elements[i].position = positions[i]
-        elements[i].color = (*colours[i], 1.0)
+    """Set the ramp's stops to ``positions`` (ascending, 0-1) with ``colours`` (linear RGB).
+
+    Two foreach_set calls write all stops in place (Blender does not re-sort them in between, so
+    no stop has to avoid passing its neighbours) and run no node-tree update; assigning each
+    stop's position and colour would run that update, about 30 us, twice per stop.
+    """
+    elements.foreach_set("position", positions)
+    elements.foreach_set("color", [v for rgb in colours for v in (*rgb, 1.0)])
 
 
 def _pattern_node(nodes, pattern: str):
@@ -178,20 +215,23 @@ def _pattern_node(nodes, pattern: str):
     return tex, output
 
 
+# The texture input that follows MaterialSpec.detail (0-1): (socket, value at 0, rise to 1).
+_DETAIL_INPUTS = {
+    "noise": ("Detail", 0.0, 2.0),
+    "voronoi": ("Randomness", 0.5, 0.5),
+    "wave": ("Distortion", 0.0, 4.0),
+    "gradient_stripes": ("Distortion", 0.0, 2.0),
+    "brick": ("Mortar Size", 0.05, 0.07),
+}
+
+
 def _pattern_values(tex, pattern: str, detail: float) -> None:
     """The settings of a pattern's texture node that follow MaterialSpec.detail (0-1)."""
-    if pattern == "noise":
-        tex.inputs["Detail"].default_value = 2.0 * detail
-    elif pattern == "voronoi":
-        tex.inputs["Randomness"].default_value = 0.5 + 0.5 * detail
-    elif pattern == "wave":
-        tex.inputs["Distortion"].default_value = 4.0 * detail
-    elif pattern == "gradient_stripes":
-        tex.inputs["Distortion"].default_value = 2.0 * detail
-    elif pattern == "brick":
-        tex.inputs["Mortar Size"].default_value = 0.05 + 0.07 * detail
-    elif pattern == "magic":
+    if pattern == "magic":
         tex.turbulence_depth = 1 + int(detail * 2)
+    elif pattern in _DETAIL_INPUTS:
+        socket, low, rise = _DETAIL_INPUTS[pattern]
+        _set_inputs(tex, {socket: low + rise * detail})
 
 
 def _only_camera_and_mirror_rays(nodes, links, bsdf) -> None:
@@ -245,17 +285,50 @@ def _photo(name: str, textures_dir: str | None, span_m: float, footprint: tuple[
 
 
 def make_mesh_object(name: str, kind: str, dims, inward: bool = False):
+    """A linked object with the mesh of a primitive (shapes.mesh; dims in metres), its faces
+    flat-shaded, or smooth with edges sharper than 45 degrees kept sharp (SMOOTH_KINDS);
+    ``inward`` reverses the faces (the walls are seen from inside)."""
     verts, faces = shapes.mesh(kind, dims)
-    if inward:
-        faces = [tuple(reversed(f)) for f in faces]
-    me = bpy.data.meshes.new(name)
-    me.from_pydata(verts.tolist(), [], faces)
+    me = _mesh(name, verts, *_topology(kind, inward, faces), flat=kind not in SMOOTH_KINDS)
     if kind in SMOOTH_KINDS:
-        me.shade_smooth()
         me.set_sharp_from_angle(angle=math.radians(45))
     obj = bpy.data.objects.new(name, me)
     bpy.context.scene.collection.objects.link(obj)
     return obj
+
+
+_TOPOLOGIES: dict = {}  # (kind, inward) -> _topology(): shapes.mesh's faces depend on the kind only
+
+
+def _topology(kind: str, inward: bool, faces: list) -> tuple[np.ndarray, np.ndarray]:
+    """(first corner of each face, vertex of each corner), int32, of a primitive's ``faces``,
+    reversed when ``inward``; made once per process and kind."""
+    key = (kind, inward)
+    if key not in _TOPOLOGIES:
+        if inward:
+            faces = [tuple(reversed(f)) for f in faces]
+        sizes = np.array([len(f) for f in faces], np.int32)
+        corners = np.fromiter(itertools.chain.from_iterable(faces), np.int32)
+        _TOPOLOGIES[key] = (np.cumsum(sizes, dtype=np.int32) - sizes, corners)
+    return _TOPOLOGIES[key]
+
+
+def _mesh(name: str, verts: np.ndarray, starts: np.ndarray, corners: np.ndarray, flat: bool):
+    """The mesh Mesh.from_pydata makes of vertices (N, 3) and faces (then shade_smooth unless
+    ``flat``), from arrays (_topology). Positions and corner vertices are written through the
+    attribute API: MeshVertex.co and MeshPolygon.vertices take 25-50 times longer."""
+    me = bpy.data.meshes.new(name)
+    me.vertices.add(len(verts))
+    me.loops.add(len(corners))
+    me.polygons.add(len(starts))
+    me.attributes["position"].data.foreach_set("vector", verts.astype(np.float32).ravel())
+    me.polygons.foreach_set("loop_start", starts)
+    me.attributes[".corner_vert"].data.foreach_set("value", corners)
+    if flat:  # shade_flat
+        sharp = me.attributes.new("sharp_face", "BOOLEAN", "FACE")
+        sharp.data.foreach_set("value", np.ones(len(starts), bool))
+    me.update(calc_edges=True)  # the edges, from the faces
+    return me
 
 
 def build_scene(spec: dict, textures_dir: str | None, shading: str = "direct"):
