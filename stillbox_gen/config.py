@@ -286,7 +286,7 @@ class RenderConfig:
     max_bounces: int = 1
     persistent: bool = True  # keep scene data between the frames of a scene (same pixels)
     # Cycles' light tree picks among many lights; with our one sun it only costs time: off, a
-    # frame's sampling takes 7-8 % less, a few pixels move by 1/255 (README, issue 26)
+    # frame's sampling takes 7-8 % less, 4 % of pixels move, most by 1/255 (README, issue 26)
     light_tree: bool = False
     max_distance: float = 200.0  # metres, camera clip end; farther surfaces are misses
     near_clip: float = 0.05  # metres

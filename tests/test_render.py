@@ -429,7 +429,8 @@ def test_default_scenes_have_stillbox_like_depth(default_dataset):
 def test_the_light_tree_setting_reaches_cycles_and_moves_no_pixel_far(tmp_path):
     """render.light_tree (off by default since issue 26) changes how Cycles picks a light, not
     what it shows: with our single sun, on and off give the same depth and colours within a
-    few 1/255 steps, and do differ (else the setting never reached Cycles)."""
+    few 1/255 steps, and do differ (else the setting never reached Cycles). Measured on these
+    frames: at most 3/255, 58 dB (over 40 default scenes: 4 % of pixels moved, at most 9/255)."""
     base = config.load_preset("stillbox")
     frames = {}
     for on in (False, True):
@@ -446,7 +447,7 @@ def test_the_light_tree_setting_reaches_cycles_and_moves_no_pixel_far(tmp_path):
     changed = 0
     for (rgb_off, d_off), (rgb_on, d_on) in zip(frames[False], frames[True], strict=True):
         np.testing.assert_array_equal(d_off, d_on)
-        assert np.abs(rgb_off - rgb_on).max() <= 8
-        assert bench.psnr(rgb_off.astype(np.uint8), rgb_on.astype(np.uint8)) > 50
+        assert np.abs(rgb_off - rgb_on).max() <= 4
+        assert bench.psnr(rgb_off.astype(np.uint8), rgb_on.astype(np.uint8)) > 55
         changed += int(not np.array_equal(rgb_off, rgb_on))
     assert changed > 0, "light_tree on and off rendered the same bytes"

@@ -289,7 +289,9 @@ def make_mesh_object(name: str, kind: str, dims, inward: bool = False):
     flat-shaded, or smooth with edges sharper than 45 degrees kept sharp (SMOOTH_KINDS);
     ``inward`` reverses the faces (the walls are seen from inside)."""
     verts, faces = shapes.mesh(kind, dims)
-    me = _mesh(name, verts, *_topology(kind, inward, faces), flat=kind not in SMOOTH_KINDS)
+    me = _mesh(
+        name, verts, *_topology(kind, inward, faces, len(verts)), flat=kind not in SMOOTH_KINDS
+    )
     if kind in SMOOTH_KINDS:
         me.set_sharp_from_angle(angle=math.radians(45))
     obj = bpy.data.objects.new(name, me)
@@ -297,13 +299,15 @@ def make_mesh_object(name: str, kind: str, dims, inward: bool = False):
     return obj
 
 
-_TOPOLOGIES: dict = {}  # (kind, inward) -> _topology(): shapes.mesh's faces depend on the kind only
+# (kind, inward, vertex count) -> _topology(): shapes.mesh's faces depend on the kind and its
+# segment count only, and the segment count sets the vertex count
+_TOPOLOGIES: dict = {}
 
 
-def _topology(kind: str, inward: bool, faces: list) -> tuple[np.ndarray, np.ndarray]:
+def _topology(kind: str, inward: bool, faces: list, vertices: int) -> tuple[np.ndarray, np.ndarray]:
     """(first corner of each face, vertex of each corner), int32, of a primitive's ``faces``,
-    reversed when ``inward``; made once per process and kind."""
-    key = (kind, inward)
+    reversed when ``inward``; made once per process, kind and vertex count."""
+    key = (kind, inward, vertices)
     if key not in _TOPOLOGIES:
         if inward:
             faces = [tuple(reversed(f)) for f in faces]
