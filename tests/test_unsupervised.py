@@ -15,11 +15,13 @@ from test_bench import bench
 from benchmark.core import registry
 from benchmark.core.data import FrameStore, load_scenes
 from benchmark.core.posenet import INITIAL_DEPTH, DepthPoseNet, PoseNet
+from benchmark.unsupervised.reprojection import gradient_diffusion_loss
 from benchmark.unsupervised.sequences import SequenceDataset
 from benchmark.unsupervised.training import (
     EPSILON,
     PhotometricStep,
     compensate,
+    mean_normalised,
     normalise_translations,
     reference_indices,
     smooth_settings,
@@ -62,9 +64,9 @@ def test_poses_are_compensated_to_the_target_and_normalised_by_the_reference():
     assert reference_indices(torch.tensor([0, 4, 2]), 5).tolist() == [
         *([[1, 2, 3, 4], [0, 1, 2, 3], [0, 1, 3, 4]])
     ]
-    # Table 4.1's gradient-diffusion optimum, without and with the occlusion module, λ × 0.01
-    assert smooth_settings(None, None, False) == pytest.approx((0.3, 0.3))
-    assert smooth_settings(None, None, True) == pytest.approx((0.003, 0.3))
+    # Table 4.1's gradient-diffusion optimum, without and with the occlusion module, λ × 1e-4
+    assert smooth_settings(None, None, False) == pytest.approx((0.003, 0.3))
+    assert smooth_settings(None, None, True) == pytest.approx((3e-5, 0.3))
     assert smooth_settings(2.0, 1.0, True) == (2.0, 1.0)
 
 
@@ -134,6 +136,24 @@ def test_true_depth_and_poses_bring_the_photometric_loss_to_its_floor(sequences)
     # the occlusion module only drops pixels: never a much larger mean
     occluded = _known_losses(sequences, indices, occlusion=True)
     assert occluded["photometric"] <= true["photometric"] * 1.05
+
+
+def test_the_smooth_term_does_not_reward_pushing_depth_far(sequences):
+    """Eq. 5.5's smooth term is on ξ / mean(ξ): the true depth and the true depth × 3 (or
+    / 3) have the same smooth loss (on ξ as it is, × 3 divided it by 9, so descending it pushed
+    fine-tuned depth far), and a map with one bump has a larger one than the flat map (0)."""
+    indices = list(range(0, len(sequences), 3))[:4]
+    true = _known_losses(sequences, indices)["smooth"]
+    for factor in (3.0, 1 / 3):
+        scaled = _known_losses(sequences, indices, lambda d, f=factor: d * f)["smooth"]
+        torch.testing.assert_close(scaled, true, rtol=1e-4, atol=0)
+    xi = torch.ones(2, 1, 9, 9)
+    torch.testing.assert_close(mean_normalised(xi * 7), xi)
+    bump = xi.clone()
+    bump[:, :, 4, 4] = 2.0
+    flat = gradient_diffusion_loss(mean_normalised(xi * 5), torch.zeros(2, 3, 9, 9), 0.3)
+    bumpy = gradient_diffusion_loss(mean_normalised(bump * 5), torch.zeros(2, 3, 9, 9), 0.3)
+    assert flat.abs().max() < 1e-12 and (bumpy > 0.01).all(), (flat, bumpy)
 
 
 def test_depthnet_starts_flat_without_a_smooth_loss(sequences):

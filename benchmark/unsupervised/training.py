@@ -21,8 +21,9 @@ DepthNet's depth is floored at metrics.MIN_DEPTH (0.1 m) before use (:func:`floo
 λ, κ: Table 4.1's gradient-diffusion optimum for the occlusion setting (κ 0.3; λ 30 without the
 occlusion module, 0.3 with it), as §5.2.4 says, with λ times :data:`SMOOTH_SCALE` (unless the
 recipe sets them): Table 4.1's λ weighs means over the toy study's 200-pixel maps of metric depth,
-eq. 5.5's smooth term means over DepthNet's 16-to-1-pixel maps of nominal depth, whose per-pixel
-Laplacians are far larger (see SMOOTH_SCALE).
+eq. 5.5's smooth term means over DepthNet's 16-to-1-pixel maps of mean-normalised inverse depth
+(:func:`mean_normalised`; see SMOOTH_SCALE). The toy study keeps the thesis' raw ξ: its depth's
+scale is fixed by the known motion and its losses are Table 4.1's.
 
 Where this differs from the author's code (ClementPinard/unsupervised-depthnet,
 ``train_img_pairs.py``; the thesis is followed): the author weighs each scale's photometric
@@ -54,14 +55,24 @@ from .toy import thesis_value
 EPSILON = 1e-5
 #: The smooth loss of §5.2.4 (Table 4.1's name)
 SMOOTH_LOSS = "gradient_diffusion"
-#: Table 4.1's λ is multiplied by this for eq. 5.5 (30 -> 0.3 without the occlusion module).
-#: Measured on 16 rendered samples of a 64 px StillBox (true depth at the nominal displacement,
-#: true poses, through DepthNet's scales): the truth's smooth loss (Σ_s w_s·L_s) is 0.0155 and
-#: its photometric loss 0.175, against 0.232 for each map's median depth (L_s = 0) and 0.203 for
-#: twice the truth (L_s = 0.0039). The truth has the lowest loss only for λ < 2.4: with λ = 30,
-#: a flat map wins and training flattens the depth (λ·L_s is 10⁴ times the photometric term at
-#: DepthNet's initialisation). At 0.3, λ·L_s is 3 % of the truth's photometric loss.
-SMOOTH_SCALE = 0.01
+#: Table 4.1's λ is multiplied by this for eq. 5.5 (30 -> 0.003 without the occlusion module).
+#: The smooth term is on mean-normalised ξ (:func:`mean_normalised`). On 64 scenes of a 64 px
+#: StillBox (docs/results/finetune/smooth_scale.py: true depth through DepthNet's scales, frame 4)
+#: the truth's smooth loss (Σ_s w_s·L_s) is 2.41; on 16 rendered samples its photometric loss was
+#: 0.175 against 0.232 for each map's median depth (L_s = 0), so the truth has the lowest loss only
+#: for λ < 0.024: with Table 4.1's λ = 30 a flat map wins and training flattens the depth. At
+#: 0.003, λ·L_s is 4 % of the truth's photometric loss, the share the raw term had at λ = 0.3
+#: (this scale was 0.01 before the normalisation; raw / normalised on the truth is 0.0095).
+SMOOTH_SCALE = 1e-4
+
+
+def mean_normalised(xi: torch.Tensor) -> torch.Tensor:
+    """``ξ / mean(ξ)`` per sample over its ``(…, H, W)`` map: the smooth term of eq. 5.5 on it is
+    unchanged when every depth is scaled by one factor. On ξ as it is, the term scales with ξ²,
+    so pushing the whole map farther lowers it wherever the photometric term is weak (around the
+    focus of expansion, far pixels): fine-tuning did that (docs/results/finetune/README.md). The
+    convention of Godard et al.'s Monodepth2; the mean keeps its gradient."""
+    return xi / xi.mean((-2, -1), keepdim=True)
 
 
 def floored(depth: torch.Tensor) -> torch.Tensor:
@@ -207,7 +218,8 @@ class PhotometricStep:
         for weight, depth in zip(self.weights, depths, strict=True):
             if min(depth.shape[-2:]) >= 3:
                 image = F.adaptive_avg_pool2d(target, depth.shape[-2:])
-                gdiff = gradient_diffusion_loss(1 / depth, image, self.kappa).mean()
+                xi = mean_normalised(1 / depth)
+                gdiff = gradient_diffusion_loss(xi, image, self.kappa).mean()
                 smooth = smooth + weight * self.smooth_weight * gdiff
         return {"loss": photo + smooth, "photometric": photo, "smooth": smooth,
                 "translations": translations}  # fmt: skip

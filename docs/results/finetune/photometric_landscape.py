@@ -7,7 +7,7 @@ target with a candidate depth map and the true camera motion (so the pose is not
 and the loss is eq. 5.3's per-pixel L1 + DSSIM (α = 0.15) averaged over the pixels the warp
 keeps, as ``finetune --known-motion`` computes it (benchmark.unsupervised.training). The
 candidates are the true depth and perturbations of it (a scale, the depths beyond 20 m moved,
-noise, blur, a constant); the table prints each one's MAE against the truth and its loss per
+noise, blur, a constant, the truth at DepthNet's 1/4 resolution); the table prints each one's MAE against the truth and its loss per
 gap, with the difference to the truth's loss. A negative difference means the loss prefers the
 wrong depth to the truth: descending it moves depth away from the truth there.
 
@@ -78,6 +78,10 @@ def candidates(truth: torch.Tensor) -> dict[str, torch.Tensor]:
         return torch.where(far, KNEE + (truth - KNEE) * s, truth).clamp(max=100.0)
 
     median = truth.flatten(1).median(1).values.view(-1, 1, 1, 1)
+    # DepthNet's finest output is 1/4 of the frame, upsampled bilinearly for the warp (§4.7.1)
+    quarter = F.interpolate(
+        F.avg_pool2d(truth, 4), size=truth.shape[-2:], mode="bilinear", align_corners=False
+    )
     return {
         "truth": truth,
         "truth x0.8": truth * 0.8,
@@ -94,6 +98,9 @@ def candidates(truth: torch.Tensor) -> dict[str, torch.Tensor]:
         "blur 3x3": blur(3),
         "blur 5x5": blur(5),
         "median constant": median.expand_as(truth),
+        "truth at 1/4 resolution": quarter,
+        "truth at 1/4 resolution x1.5": quarter * 1.5,
+        "truth at 1/4 resolution x3": quarter * 3,
     }
 
 
