@@ -97,7 +97,8 @@ def test_finetune_writes_a_depth_checkpoint_that_infer_loads(files, tmp_path):
 
 def test_pose_warmup_freezes_the_depthnet_then_trains_it(files, tmp_path):
     """During the warm-up the DepthNet's weights and BatchNorm statistics stay the checkpoint's
-    while PoseNet learns; the first joint step changes them."""
+    while PoseNet learns; the first joint step changes the weights, never the statistics (the
+    network trained is the one eval and infer run)."""
     o = FinetuneOptions(
         out=tmp_path / "ft", ckpt=files["ckpt"], input=files["folder"], speed=3.0, fps=10.0,
         steps=3, pose_warmup=2, batch_size=2, ckpt_every=0, log_every=1000, quiet=True,
@@ -116,8 +117,10 @@ def test_pose_warmup_freezes_the_depthnet_then_trains_it(files, tmp_path):
     assert any(not torch.equal(pose0[k], v) for k, v in tuner.net.pose.state_dict().items())
     assert tuner._one_step(batch) == "joint"
     depth = tuner.net.depth.state_dict()
-    moved = [k for k in depth if "running" not in k and not torch.equal(depth0[k], depth[k])]
+    moved = [k for k in depth if not torch.equal(depth0[k], depth[k])]
     assert moved and all(p.requires_grad for p in tuner.net.depth.parameters())
+    stats = [k for k in depth if "running" in k or "num_batches" in k]
+    assert stats and not any(k in moved for k in stats), moved
 
 
 def test_resume_continues_as_one_run_and_keeps_its_options(files, tmp_path):
