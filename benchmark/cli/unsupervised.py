@@ -394,9 +394,8 @@ def _load_or_start(
 @click.option(
     "--smooth-weight",
     type=float,
-    help="λ of the smooth loss (eq. 5.5; 0: photometric loss alone).  [default: depthnet-unsup's, "
-    f"{smooth_settings(None, None, False)[0]:g}; {smooth_settings(None, None, True)[0]:g} with "
-    "--occlusion]",
+    help="λ of the smooth loss (eq. 5.5; 0: photometric loss alone; depthnet-unsup trains with "
+    f"{smooth_settings(None, None, False)[0]:g}).  [default: {finetune_lib.SMOOTH_WEIGHT:g}]",
 )
 @click.option(
     "--known-motion",

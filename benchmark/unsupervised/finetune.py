@@ -62,6 +62,12 @@ STEPS = 1000
 #: (Joint training from a flat DepthNet had not found StillBox's random directions in 120 steps;
 #: there the depth was wrong too.)
 POSE_WARMUP = 200
+#: λ of a fine-tuning: eq. 5.5's smooth term off. Measured on the close-range proof (known
+#: motion, 400 steps of 16; docs/results/finetune/README.md): λ = 0 gave test MAE 4.50 m,
+#: depthnet-unsup's 0.003 gave 8.04 m and 0.03 gave 67.9 m (before: 6.42). A supervised
+#: DepthNet's few near-zero depths are spikes of ξ whose smooth term starts at half the
+#: photometric one at λ = 0.003, and the quickest way to flatten them is to push the map far.
+SMOOTH_WEIGHT = 0.0
 #: Options a resumed fine-tuning keeps from its checkpoint (given again, they must be equal)
 RESUMED = (
     *("ckpt", "input", "speed", "poses", "fps", "fov", "focal", "res", "train_fov"),
@@ -107,7 +113,7 @@ def defaults(known_motion: bool = False) -> dict:
     r = UNSUPERVISED_RECIPE
     warmup = 0 if known_motion else POSE_WARMUP
     return {"pose_warmup": warmup, "lr": r.lr, "batch_size": r.batch_size, "seed": 0,
-            "known_motion": False}  # fmt: skip
+            "known_motion": False, "smooth_weight": SMOOTH_WEIGHT}  # fmt: skip
 
 
 def check_numbers(o: FinetuneOptions) -> None:
