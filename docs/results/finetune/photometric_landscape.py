@@ -7,9 +7,10 @@ target with a candidate depth map and the true camera motion (so the pose is not
 and the loss is eq. 5.3's per-pixel L1 + DSSIM (α = 0.15) averaged over the pixels the warp
 keeps, as ``finetune --known-motion`` computes it (benchmark.unsupervised.training). The
 candidates are the true depth and perturbations of it (a scale, the depths beyond 20 m moved,
-noise, blur, a constant, the truth at DepthNet's 1/4 resolution); the table prints each one's MAE against the truth and its loss per
-gap, with the difference to the truth's loss. A negative difference means the loss prefers the
-wrong depth to the truth: descending it moves depth away from the truth there.
+noise, blur, a constant, the truth at DepthNet's 1/4 resolution); the table prints each one's
+MAE against the truth and its loss per gap, with the difference to the truth's loss. A negative
+difference means the loss prefers the wrong depth to the truth: descending it moves depth away
+from the truth there.
 
 Depth is clipped to 100 m (the metrics' range). One thread; a few seconds for 12 scenes.
 """
