@@ -193,12 +193,17 @@ def _one_line(proc, word: str) -> None:
 
 
 def test_run_with_known_orientations_and_with_6dof(rotating_dataset, tmp_path):
-    """Two-step runs on rotating data: `--pose orientation` and `depthnet-unsup-6dof-tiny`
-    (whose checkpoint `eval` loads); the default translation mode, a 6dof mode on a 3-output
-    PoseNet and an unknown mode are refused in one line naming --pose, without a run folder."""
+    """Two-step runs on rotating data: `--pose orientation` (DepthNet and SFMLearner) and
+    `depthnet-unsup-6dof-tiny` (whose checkpoint `eval` loads); the default translation mode,
+    a 6dof mode on a 3-output PoseNet and an unknown mode are refused in one line naming
+    --pose, without a run folder."""
     base = ["--data", rotating_dataset, "--batch-size", 2, "--max-steps", 2, "--quiet"]
     bench("run", "depthnet-unsup-tiny", "--pose", "orientation", "--out", tmp_path / "o", *base)
     assert json.loads((tmp_path / "o" / "config.json").read_text())["pose"] == "orientation"
+    # SFMLearner reads the target alone: the known orientations only rotate its warps
+    bench("run", "sfmlearner-tiny", "--pose", "orientation", "--out", tmp_path / "s", *base)
+    sfm = json.loads((tmp_path / "s" / "summary.json").read_text())
+    assert np.isfinite(sfm["metrics"]["mae"])
     bench("run", "depthnet-unsup-6dof-tiny", "--out", tmp_path / "6", *base)
     summary = json.loads((tmp_path / "6" / "summary.json").read_text())
     assert np.isfinite(summary["metrics"]["mae"])

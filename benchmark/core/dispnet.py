@@ -113,9 +113,11 @@ class SfmLearnerNet(nn.Module):
         self.pose = PoseNet(frames, dof, width)
         self.frames = frames
 
-    def forward(self, pair: torch.Tensor, sequence: torch.Tensor | None = None):
+    def forward(self, pair: torch.Tensor, sequence: torch.Tensor | None = None, stabilise=None):
         """Depth ``1/disparity`` of the pair's target (its last 3 channels), finest first; with
-        ``sequence`` ``(B, 3·N, H, W)``, ``(depths, poses)`` (one forward for DDP)."""
+        ``sequence`` ``(B, 3·N, H, W)``, ``(depths, poses)`` (one forward for DDP).
+        ``stabilise`` (rotating data, DepthPoseNet's argument) is ignored: DispNet reads the
+        target alone, so warping the reference to its orientation changes nothing."""
         depths = [1 / d for d in self.depth(pair[:, 3:])]
         if sequence is None:
             return depths
