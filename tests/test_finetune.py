@@ -6,6 +6,7 @@ nothing written, and the footage's sequences (stride, moving stretches, intrinsi
 from __future__ import annotations
 
 import csv
+import json
 from pathlib import Path
 
 import numpy as np
@@ -73,6 +74,9 @@ def test_finetune_writes_a_depth_checkpoint_that_infer_loads(files, tmp_path):
     assert [int(r["step"]) for r in rows] == [1, 2, 3]
     assert [r["phase"] for r in rows] == ["pose-warmup", "joint", "joint"]
     assert all(np.isfinite(float(r["loss"])) for r in rows)
+    # the default λ is 0 (finetune.SMOOTH_WEIGHT): the loss is the photometric term alone
+    assert json.loads((out / "config.json").read_text())["smooth_weight"] == 0.0
+    assert all(float(r["smooth"]) == 0 and r["loss"] == r["photometric"] for r in rows)
     best = torch.load(out / "checkpoints" / "best.pt", weights_only=True)
     assert best["model_name"] == "depthnet-tiny" and "optimizer" not in best and "pose" not in best
     assert best["nominal_displacement"] == 0.3 and best["shift"] == 3
