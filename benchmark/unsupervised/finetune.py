@@ -64,9 +64,10 @@ STEPS = 1000
 POSE_WARMUP = 200
 #: λ of a fine-tuning: eq. 5.5's smooth term off. Measured on the close-range proof (known
 #: motion, 400 steps of 16; docs/results/finetune/README.md): λ = 0 gave test MAE 4.50 m,
-#: depthnet-unsup's 0.003 gave 8.04 m and 0.03 gave 67.9 m (before: 6.42). A supervised
-#: DepthNet's few near-zero depths are spikes of ξ whose smooth term starts at half the
-#: photometric one at λ = 0.003, and the quickest way to flatten them is to push the map far.
+#: depthnet-unsup's 0.003 gave 8.04 m and 0.03 gave 67.9 m (before: 6.42). The supervised
+#: DepthNet's depths at the 0.1 m floor (21 % of that footage's pixels) are spikes of ξ whose
+#: smooth term starts at half the photometric one at λ = 0.003, and the quickest way to flatten
+#: them is to push the whole map far.
 SMOOTH_WEIGHT = 0.0
 #: Options a resumed fine-tuning keeps from its checkpoint (given again, they must be equal)
 RESUMED = (
