@@ -22,10 +22,10 @@ from benchmark.core import registry
 from benchmark.core.checkpoint import load_checkpoint
 from benchmark.core.data import FrameStore, load_scenes
 from benchmark.unsupervised.sequences import SequenceDataset
-from benchmark.unsupervised.training import PhotometricStep
+from benchmark.unsupervised.training import PhotometricStep, smooth_settings
 
-D0 = 0.3
-LAMBDA, KAPPA = 0.003, 0.3
+D0 = 0.3  # metres: DepthNet's nominal displacement on StillBox (3 frames of 0.1 m)
+LAMBDA, KAPPA = smooth_settings(None, None, False)  # depthnet-unsup's
 SAMPLES = 64
 
 

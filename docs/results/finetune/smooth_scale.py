@@ -3,8 +3,8 @@
 How large is eq. 5.5's smooth term on the true depth, and does it prefer the truth pushed far?
 For SCENES scenes (default 16) of a stillbox-gen dataset, frame 4's true depth (clipped to
 100 m) is area-downsampled to DepthNet's five output scales (1/4 to 1/64 of the frame), and the
-smooth term Σ_s w_s·L_gdiff(ξ_s, I_s, κ) (w_s = 1/2^s, κ = 0.3, I_s the frame downsampled alike)
-is printed for two inverse depths:
+smooth term Σ_s w_s·L_gdiff(ξ_s, I_s, κ) (depthnet-unsup's w_s = 1/2^s and κ = 0.3, I_s the
+frame downsampled alike) is printed for two inverse depths:
 
 - ``raw``: ξ = 1/θ as it is (the loss before 2026-12-03);
 - ``normalised``: ξ divided by its mean over the map (per sample), so that scaling every depth by
@@ -22,25 +22,26 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from benchmark.core.registry import UNSUPERVISED_RECIPE
 from benchmark.unsupervised.reprojection import gradient_diffusion_loss
-from benchmark.unsupervised.training import mean_normalised
+from benchmark.unsupervised.training import mean_normalised, smooth_settings
 from stillbox_gen.dataset import Dataset
 
-KAPPA = 0.3
-SCALES = 5
+KAPPA = smooth_settings(None, None, False)[1]  # depthnet-unsup's κ
+WEIGHTS = UNSUPERVISED_RECIPE.loss_weights  # w_s, finest (1/4 of the frame) first
 
 
 def term(depth: torch.Tensor, image: torch.Tensor, normalise: bool) -> torch.Tensor:
     """(B,) Σ_s w_s·L_gdiff over DepthNet's scales of ``depth`` (B, 1, H, W) metres."""
     total = torch.zeros(depth.shape[0])
     h = depth.shape[-1]
-    for s in range(SCALES):
+    for s, weight in enumerate(WEIGHTS):
         size = max(h // 4 // 2**s, 1)
         if size < 3:
             continue
         xi = 1 / F.adaptive_avg_pool2d(depth, size)
         xi = mean_normalised(xi) if normalise else xi
-        total += gradient_diffusion_loss(xi, F.adaptive_avg_pool2d(image, size), KAPPA) / 2**s
+        total += weight * gradient_diffusion_loss(xi, F.adaptive_avg_pool2d(image, size), KAPPA)
     return total
 
 
