@@ -20,7 +20,7 @@ TINY_SHARES = (0.5, 0.25, 0.25)  # train/val/test shares of tiny_dataset
 
 # Fixtures that render a dataset with Blender (here and in test_stats.py).
 RENDER_FIXTURES = frozenset(
-    {"default_dataset", "custom_dataset", "tiny_dataset", "rotating_dataset"}
+    {"default_dataset", "custom_dataset", "tiny_dataset", "rotating_dataset", "one_scene_dataset"}
 )
 
 

@@ -95,7 +95,9 @@ class TrainConfig:
     pairs (the network answers for ``shift`` × metres per frame); ``depth_range``: metres,
     training targets are clipped to it and a depth network's outputs are clamped to it when
     scored or used (DepthNet: [0, 100] m, the clamped DepthNet of thesis 6.4: [10, 60] m).
-    ``max_steps``: stop after this many optimiser steps (smoke runs); ``threads``: torch
+    ``max_steps``: stop after this many optimiser steps (smoke runs); ``epoch_size``: optimiser
+    steps per epoch (0: one sample per training frame; the public DepthNet code's
+    ``--epoch-size``, which fits the 55-epoch schedule to a smaller budget); ``threads``: torch
     intra-op threads (0: torch's default); ``ckpt_every``: optimiser steps between mid-epoch
     ``last.pt`` checkpoints (0: epoch ends only); ``log_every``: steps between ``steps.csv``
     rows; ``cache``: decoded frames in memory (None: when they fit).
@@ -134,6 +136,17 @@ class TrainConfig:
                 "compare": "Stop every training after this many steps.",
             },
             rule=AT_LEAST_1,
+        ),
+    )
+    epoch_size: int = setting(
+        0,
+        flag=Flag(
+            "--epoch-size",
+            {
+                "run": "Optimiser steps per epoch (0: one pass over the training frames); the "
+                "learning-rate milestones, validations and checkpoints fall at epoch ends."
+            },
+            rule=(lambda v: v >= 0, "must be 0 (one pass over the training frames) or more"),
         ),
     )
     batch_size: int = setting(

@@ -177,7 +177,7 @@ RESUME_KEYS = ("optimizer", "scheduler", "state")
 #: describes, so it is refused; --max-steps, --device, --threads and the logging and speed
 #: options may change (they are applied and recorded).
 RESUMED_FIELDS = (
-    *("epochs", "batch_size", "lr", "shift", "depth_range", "seed", "pretrained"),
+    *("epochs", "epoch_size", "batch_size", "lr", "shift", "depth_range", "seed", "pretrained"),
     *("optimizer", "momentum", "dampening", "beta2", "weight_decay"),
     *("milestones", "gamma", "loss_weights", "loss_scale"),
     *("sequence_length", "occlusion", "smooth_weight", "smooth_kappa", "pose"),
@@ -368,6 +368,8 @@ class Trainer:
             persistent_workers=workers > 0,
         )
         self.steps_per_epoch = len(self.train_set) // self.world // self.per_rank_batch
+        if cfg.epoch_size:  # the first epoch_size batches of each epoch's permutation
+            self.steps_per_epoch = min(self.steps_per_epoch, cfg.epoch_size)
         if self.steps_per_epoch == 0:
             raise FieldError(
                 "batch_size",
@@ -601,6 +603,8 @@ class Trainer:
                 if cfg.ckpt_every and st["global_step"] % cfg.ckpt_every == 0:
                     self.checkpoint("last")
                 if st["global_step"] >= total or stop:
+                    break
+                if st["step_in_epoch"] >= self.steps_per_epoch:  # --epoch-size
                     break
                 t_data = time.perf_counter()
             if st["step_in_epoch"] >= self.steps_per_epoch:

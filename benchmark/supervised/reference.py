@@ -1,0 +1,148 @@
+"""The author's DepthNet code as the reference for ours, at equal budget (docs/results/reference).
+
+The user brings their own checkout of github.com/ClementPinard/DepthNet and a Python that can run
+it (torch, numpy, imageio, path, tensorboardX, blessings, progressbar2); nothing of it is part
+of this project. :func:`train_author` runs its ``train.py`` through
+``reference_launcher.py`` on a stillbox-gen dataset written with ``--legacy --image-format jpg``
+(so both codes read the same JPEG frames), on this dataset's own train split (validating on
+:data:`AUTHOR_VAL_SCENES` of its val scenes), keeping the checkpoints of chosen epochs.
+:func:`convert` turns such a checkpoint into one of this project's, so that ``stillbox-bench
+eval`` scores both codes with the same metric code on the same test split.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import torch
+
+from stillbox_gen import layout
+from stillbox_gen.conventions import MAX_DEPTH, NOMINAL_SHIFT
+
+from ..core import runfolder
+from ..core.data import camera_of, load_scenes
+from ..core.errors import FieldError
+
+LAUNCHER = Path(__file__).with_name("reference_launcher.py")
+#: val scenes the author's code validates on after each epoch (its choice of "best" only; the
+#: harness scores the kept epochs' last checkpoints on the test split)
+AUTHOR_VAL_SCENES = 50
+#: DataParallel's prefix on the author's state_dict keys
+PARALLEL_PREFIX = "module."
+
+
+def author_split(data: Path, val_scenes: int = AUTHOR_VAL_SCENES) -> dict:
+    """The dataset's train scenes as the author's loader reads them (``imgs``, ``depth``,
+    ``speed``, ``time_step``, ``subdir``: the chunk folder) and the validation pairs (i, i+3)
+    of its first ``val_scenes`` val scenes as ``[[img1, img2], depth, displacement]`` paths
+    relative to ``data``. DataError unless the records hold the legacy ``.jpg``/``.npy`` files."""
+    out: dict = {"train": [], "val": []}
+    for split in ("train", "val"):
+        for scene in load_scenes(data, split):
+            rec = scene.record
+            if not (rec["imgs"][0].endswith(".jpg") and rec["depth"][0].endswith(".npy")):
+                raise FieldError(
+                    "data",
+                    "needs the original DepthNet files (stillbox-gen --legacy --image-format jpg)",
+                    where=f" {data}",
+                )
+            chunk = layout.chunk_name(scene.index)
+            if split == "train":
+                keys = ("imgs", "depth", "speed", "time_step")
+                out["train"].append({**{k: rec[k] for k in keys}, "subdir": chunk})
+            elif len(out["val"]) < val_scenes * (scene.frames - NOMINAL_SHIFT):
+                disp = [v * NOMINAL_SHIFT * rec["time_step"] for v in rec["speed"]]
+                for i in range(scene.frames - NOMINAL_SHIFT):
+                    pair = [f"{chunk}/{rec['imgs'][i]}", f"{chunk}/{rec['imgs'][i + 3]}"]
+                    out["val"].append([pair, f"{chunk}/{rec['depth'][i + 3]}", disp])
+    return out
+
+
+def train_author(
+    code: Path,
+    python: str,
+    data: Path,
+    out: Path,
+    train_args: list[str],
+    keep_epochs: list[int],
+    threads: int,
+) -> int:
+    """Run the author's train.py in ``out`` (its ``Results/`` folder goes there; the kept
+    epochs' checkpoints into ``out/epochs``); returns its exit code. ``train_args``: the
+    author's own flags (``--epochs``, ``-b``, ``--seed``…); the dataset path is added."""
+    code, data, out = Path(code).resolve(), Path(data).resolve(), Path(out).resolve()
+    if not (code / "train.py").is_file() or not (code / "datasets" / "stillbox.py").is_file():
+        raise FieldError("code", "is not a checkout of ClementPinard/DepthNet", where=f" {code}")
+    split = author_split(data)
+    out.mkdir(parents=True, exist_ok=True)
+    split_json = out / "split.json"
+    split_json.write_text(json.dumps(split))
+    keep = ",".join(str(e) for e in keep_epochs)
+    cmd = [python, str(LAUNCHER), str(code), str(split_json), str(out / "epochs"), keep, "--"]
+    cmd += [*train_args, "--no-date", str(data)]
+    env = {**os.environ, "OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads)}
+    (out / "command.txt").write_text(" ".join(cmd) + "\n")
+    return subprocess.call(cmd, cwd=out, env=env)
+
+
+def convert(author_ckpt: Path, data: Path, dest: Path) -> None:
+    """The author's checkpoint (``--bn --activation-function elu``: the same layers as
+    ``depthnet``) as a checkpoint of this project's ``depthnet`` for ``data``'s camera: its
+    output is depth for 3 frames of the dataset's displacement (the author's nominal shift)."""
+    ck = torch.load(author_ckpt, map_location="cpu", weights_only=True)
+    if not ck.get("bn") or ck.get("activation_function") != "elu" or ck.get("clamp"):
+        raise FieldError(
+            "ckpt", "was not trained with --bn --activation-function elu", where=f" {author_ckpt}"
+        )
+    state = {k.removeprefix(PARALLEL_PREFIX): v for k, v in ck["state_dict"].items()}
+    scenes = load_scenes(data, "train")
+    displacement = scenes[0].displacement
+    runfolder.save_checkpoint(
+        Path(dest),
+        {
+            "model": state,
+            "model_name": "depthnet",
+            "nominal_displacement": NOMINAL_SHIFT * displacement,
+            "shift": NOMINAL_SHIFT,
+            "depth_range": [0.0, MAX_DEPTH],
+            "camera": camera_of(data),
+            "config": {"source": str(author_ckpt), "epoch": ck.get("epoch")},
+        },
+    )
+
+
+def main(argv: list[str] | None = None) -> None:
+    """``python -m benchmark.supervised.reference train|convert ...`` (docs/results/reference)."""
+    import argparse
+
+    p = argparse.ArgumentParser(prog="python -m benchmark.supervised.reference")
+    sub = p.add_subparsers(dest="cmd", required=True)
+    t = sub.add_parser("train", help="run the author's train.py on a stillbox-gen dataset")
+    t.add_argument("--code", type=Path, required=True, help="checkout of ClementPinard/DepthNet")
+    t.add_argument("--python", default=sys.executable, help="Python that runs the author's code")
+    t.add_argument("--data", type=Path, required=True)
+    t.add_argument("--out", type=Path, required=True)
+    t.add_argument("--keep", default="", help="epochs whose checkpoints are kept, e.g. 6,18,55")
+    t.add_argument("--threads", type=int, default=1)
+    c = sub.add_parser("convert", help="author's checkpoint -> this project's")
+    c.add_argument("ckpt", type=Path)
+    c.add_argument("--data", type=Path, required=True)
+    c.add_argument("--out", type=Path, required=True)
+    args, rest = p.parse_known_args(argv)
+    if args.cmd == "train":
+        keep = [int(e) for e in args.keep.split(",") if e]
+        rest = [a for a in rest if a != "--"]
+        raise SystemExit(
+            train_author(args.code, args.python, args.data, args.out, rest, keep, args.threads)
+        )
+    if rest:
+        p.error(f"unrecognised arguments: {' '.join(rest)}")
+    convert(args.ckpt, args.data, args.out)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,63 @@
+"""The reference harness (benchmark.supervised.reference) without the author's code, which is
+not part of the project: the checkpoint conversion, the launcher's stand-ins, the split refusal,
+and ``--epoch-size`` (the author's budget-scaled epochs)."""
+
+from __future__ import annotations
+
+import csv
+
+import pytest
+import torch
+
+from benchmark.core import registry
+from benchmark.core.checkpoint import load_checkpoint, load_weights
+from benchmark.core.errors import FieldError
+from benchmark.supervised import reference, reference_launcher, runner
+
+
+def test_convert_keeps_the_authors_weights(tiny_dataset, tmp_path):
+    torch.manual_seed(0)
+    net = registry.build_model("depthnet").eval()
+    state = {f"module.{k}": v for k, v in net.state_dict().items()}  # DataParallel's names
+    author = {"state_dict": state, "bn": True, "activation_function": "elu", "clamp": False}
+    torch.save({**author, "epoch": 6}, tmp_path / "a.pth.tar")
+    reference.convert(tmp_path / "a.pth.tar", tiny_dataset, tmp_path / "ours.pt")
+    ck = load_checkpoint(tmp_path / "ours.pt", "ckpt")
+    back = registry.build_model("depthnet").eval()
+    load_weights(back, ck, "ckpt", tmp_path / "ours.pt", "depthnet")
+    x = torch.randn(2, 6, 64, 64)
+    assert torch.equal(back(x)[0], net(x)[0])
+    assert ck["shift"] == 3 and ck["nominal_displacement"] == pytest.approx(0.3)
+    torch.save({**author, "bn": False}, tmp_path / "b.pth.tar")
+    with pytest.raises(FieldError, match="--bn --activation-function elu"):
+        reference.convert(tmp_path / "b.pth.tar", tiny_dataset, tmp_path / "b.pt")
+
+
+def test_the_split_needs_the_legacy_files(tiny_dataset):
+    with pytest.raises(FieldError, match="--legacy"):
+        reference.author_split(tiny_dataset)
+
+
+def test_the_torchvision_stand_in_normalises_per_channel():
+    reference_launcher.torchvision_stand_in()
+    import torchvision.transforms as T
+
+    x = torch.rand(3, 4, 5) * 255
+    steps = T.Compose([T.Normalize([0, 0, 0], [255] * 3), T.Normalize([0.5] * 3, [0.2] * 3)])
+    torch.testing.assert_close(steps(x), (x / 255 - 0.5) / 0.2)
+
+
+def test_epoch_size_sets_the_steps_per_epoch_and_the_schedule(tiny_dataset, tmp_path):
+    cfg = runner.train_config(
+        "depthnet-tiny", tiny_dataset, tmp_path / "r", epochs=4, epoch_size=2, batch_size=4,
+        milestones=(0.5,), threads=1, progress=False,
+    )  # fmt: skip
+    trainer = runner.Trainer(cfg)
+    trainer.setup()
+    assert trainer.steps_per_epoch == 2 < len(trainer.train_set) // 4
+    trainer.fit()
+    with open(tmp_path / "r" / "metrics.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert [int(r["step"]) for r in rows] == [2, 4, 6, 8]
+    # each row is written after its epoch's scheduler step: the lr of the epoch that follows
+    assert [float(r["lr"]) for r in rows] == pytest.approx([1e-2, 3e-3, 3e-3, 3e-3])
