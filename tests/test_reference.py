@@ -61,3 +61,23 @@ def test_epoch_size_sets_the_steps_per_epoch_and_the_schedule(tiny_dataset, tmp_
     assert [int(r["step"]) for r in rows] == [2, 4, 6, 8]
     # each row is written after its epoch's scheduler step: the lr of the epoch that follows
     assert [float(r["lr"]) for r in rows] == pytest.approx([1e-2, 3e-3, 3e-3, 3e-3])
+
+
+def test_the_resolution_floor_is_the_error_of_the_downsampled_truth(tiny_dataset):
+    import numpy as np
+
+    from benchmark.core.data import load_scenes
+
+    floor = reference.resolution_floor(tiny_dataset, "test")
+    errors = []
+    for scene in load_scenes(tiny_dataset, "test"):
+        for f in range(3, scene.frames):
+            gt = np.minimum(scene.load_depth(f).astype(np.float64), 100.0)
+            quarter = gt.reshape(16, 4, 16, 4).mean(axis=(1, 3))
+            up = torch.nn.functional.interpolate(
+                torch.from_numpy(quarter)[None, None], size=(64, 64), mode="bilinear"
+            )[0, 0].numpy()
+            errors.append(np.abs(up - gt).mean())
+    assert floor["pairs"] == len(errors)
+    assert floor["mae"] == pytest.approx(np.mean(errors), rel=1e-5)
+    assert floor["mae"] > 0.5  # depth edges: a 1/4-resolution output cannot reach zero

@@ -115,6 +115,27 @@ def convert(author_ckpt: Path, data: Path, dest: Path) -> None:
     )
 
 
+def resolution_floor(data: Path, split: str = "test", shift: int = NOMINAL_SHIFT) -> dict:
+    """The full-resolution error of a perfect 1/4-resolution depth network on ``split``'s eval
+    pairs (the second frame's depth clipped to MAX_DEPTH, area-downsampled 4x as the training
+    targets are, upsampled back as ``eval`` upsamples outputs): the lowest MAE, MRE and MLE that
+    DepthNet's output resolution allows, in metres for MAE, per image then averaged."""
+    import torch.nn.functional as F
+
+    from ..core import metrics
+
+    rows = []
+    for scene in load_scenes(data, split):
+        for f in range(shift, scene.frames):
+            gt = torch.from_numpy(scene.load_depth(f)).clamp(max=MAX_DEPTH)[None, None]
+            h, w = gt.shape[-2:]
+            quarter = F.adaptive_avg_pool2d(gt, (h // 4, w // 4))
+            up = metrics.upsample_to(quarter, h, w).reshape(1, h, w)
+            rows.append(metrics.image_metrics(up, gt.reshape(1, h, w)))
+    names = ("mae", "mre", "mle")
+    return {"pairs": len(rows), **{k: float(torch.cat([r[k] for r in rows]).mean()) for k in names}}
+
+
 def main(argv: list[str] | None = None) -> None:
     """``python -m benchmark.supervised.reference train|convert ...`` (docs/results/reference)."""
     import argparse
@@ -132,7 +153,13 @@ def main(argv: list[str] | None = None) -> None:
     c.add_argument("ckpt", type=Path)
     c.add_argument("--data", type=Path, required=True)
     c.add_argument("--out", type=Path, required=True)
+    f = sub.add_parser("floor", help="error of a perfect 1/4-resolution network on a split")
+    f.add_argument("--data", type=Path, required=True)
+    f.add_argument("--split", default="test")
     args, rest = p.parse_known_args(argv)
+    if args.cmd == "floor":
+        print(json.dumps(resolution_floor(args.data, args.split)))
+        return
     if args.cmd == "train":
         keep = [int(e) for e in args.keep.split(",") if e]
         rest = [a for a in rest if a != "--"]
