@@ -179,7 +179,7 @@ class PairDataset(torch.utils.data.Dataset):
         if i1 == i2:
             target = np.full_like(self.store.depth(k, i2), STILL_TARGET)
         else:
-            target = self.store.depth(k, i2) * 1.0
+            target = self.store.depth(k, i2) * (self.shift / abs(i2 - i1))
         return np.clip(target, *self.depth_range)
 
     def _camera(

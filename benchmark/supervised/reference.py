@@ -136,6 +136,48 @@ def resolution_floor(data: Path, split: str = "test", shift: int = NOMINAL_SHIFT
     return {"pairs": len(rows), **{k: float(torch.cat([r[k] for r in rows]).mean()) for k in names}}
 
 
+def collect(evals: Path, epoch_size: int, batch_size: int) -> list[dict]:
+    """One row per ``evals/<code>-s<seed>-e<epoch>/summary.json`` (``stillbox-bench eval``'s):
+    code, seed, epoch, samples (epoch x epoch_size x batch_size), the test metrics and the MAE
+    by distance to the focus of expansion (one column per band, pixels)."""
+    rows = []
+    for summary in sorted(Path(evals).glob("*-s*-e*/summary.json")):
+        code, seed, epoch = summary.parent.name.rsplit("-", 2)
+        s = json.loads(summary.read_text())
+        m = s["metrics"]
+        row = {"code": code, "seed": int(seed[1:]), "epoch": int(epoch[1:])}
+        row["samples"] = row["epoch"] * epoch_size * batch_size
+        row.update({k: m[k] for k in ("mae", "mre", "mle", "depth_error", "p1.25")})
+        for band in s["error_by_foe_distance"]:
+            row[f"mae_foe_{band['from_px']:g}-{band['to_px']:g}px"] = band["mae"]
+        rows.append(row)
+    return sorted(rows, key=lambda r: (r["code"], r["seed"], r["epoch"]))
+
+
+def plot(rows: list[dict], path: Path, floor: float | None = None) -> None:
+    """Test MAE against training samples (log axis), one line per code and seed, with the
+    thesis' 4.72 m (Table 3.4) and the resolution floor of :func:`resolution_floor`."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for code, seed in sorted({(r["code"], r["seed"]) for r in rows}):
+        pts = [(r["samples"], r["mae"]) for r in rows if (r["code"], r["seed"]) == (code, seed)]
+        style = "-o" if code == "ours" else "--s"
+        ax.plot(*zip(*pts, strict=True), style, label=f"{code} (seed {seed})")
+    ax.axhline(4.72, color="k", lw=0.8, ls=":", label="thesis, 44 M samples (4.72 m)")
+    if floor is not None:
+        ax.axhline(floor, color="grey", lw=0.8, label=f"perfect 1/4-res. output ({floor:.2f} m)")
+    ax.set(xscale="log", xlabel="training samples", ylabel="test MAE (m)")
+    ax.set_title("DepthNet 64 px: the author's code and ours, same data and recipe")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def main(argv: list[str] | None = None) -> None:
     """``python -m benchmark.supervised.reference train|convert ...`` (docs/results/reference)."""
     import argparse
@@ -156,7 +198,25 @@ def main(argv: list[str] | None = None) -> None:
     f = sub.add_parser("floor", help="error of a perfect 1/4-resolution network on a split")
     f.add_argument("--data", type=Path, required=True)
     f.add_argument("--split", default="test")
+    r = sub.add_parser("report", help="results.csv and mae_vs_samples.png from the evals")
+    r.add_argument("evals", type=Path)
+    r.add_argument("--out", type=Path, required=True)
+    r.add_argument("--epoch-size", type=int, required=True)
+    r.add_argument("--batch-size", type=int, required=True)
+    r.add_argument("--floor", type=float, default=None)
     args, rest = p.parse_known_args(argv)
+    if args.cmd == "report":
+        import csv
+
+        rows = collect(args.evals, args.epoch_size, args.batch_size)
+        args.out.mkdir(parents=True, exist_ok=True)
+        keys = list(dict.fromkeys(k for row in rows for k in row))
+        with open(args.out / "results.csv", "w", newline="") as f:
+            writer = csv.DictWriter(f, keys)
+            writer.writeheader()
+            writer.writerows(rows)
+        plot(rows, args.out / "mae_vs_samples.png", args.floor)
+        return
     if args.cmd == "floor":
         print(json.dumps(resolution_floor(args.data, args.split)))
         return
