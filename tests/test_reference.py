@@ -81,3 +81,22 @@ def test_the_resolution_floor_is_the_error_of_the_downsampled_truth(tiny_dataset
     assert floor["pairs"] == len(errors)
     assert floor["mae"] == pytest.approx(np.mean(errors), rel=1e-5)
     assert floor["mae"] > 0.5  # depth edges: a 1/4-resolution output cannot reach zero
+
+
+def test_report_reads_every_scored_checkpoint(tmp_path):
+    import json
+
+    for name, mae in (("author-s0-e6", 30.0), ("ours-s0-e6", 20.0), ("ours-s1-e12", 15.0)):
+        (tmp_path / name).mkdir()
+        summary = {
+            "metrics": {"mae": mae, "mre": 1.0, "mle": 0.5, "depth_error": mae - 1, "p1.25": 0.2},
+            "error_by_foe_distance": [{"from_px": 0.0, "to_px": 1.0, "mae": 2 * mae}],
+        }
+        (tmp_path / name / "summary.json").write_text(json.dumps(summary))
+    rows = reference.collect(tmp_path, epoch_size=57, batch_size=32)
+    assert [(r["code"], r["seed"], r["epoch"]) for r in rows] == [
+        ("author", 0, 6), ("ours", 0, 6), ("ours", 1, 12)
+    ]  # fmt: skip
+    assert rows[2]["samples"] == 12 * 57 * 32 and rows[2]["mae_foe_0-1px"] == 30.0
+    reference.plot(rows, tmp_path / "p.png", floor=4.8)
+    assert (tmp_path / "p.png").stat().st_size > 1000
