@@ -90,7 +90,10 @@ def test_report_reads_every_scored_checkpoint(tmp_path):
         (tmp_path / name).mkdir()
         summary = {
             "metrics": {"mae": mae, "mre": 1.0, "mle": 0.5, "depth_error": mae - 1, "p1.25": 0.2},
-            "error_by_foe_distance": [{"from_px": 0.0, "to_px": 1.0, "mae": 2 * mae}],
+            "error_by_foe_distance": [
+                {"from_px": 0.0, "to_px": 1.0, "mae": 2 * mae},
+                {"from_px": 1.0, "to_px": None, "mae": mae},
+            ],
         }
         (tmp_path / name / "summary.json").write_text(json.dumps(summary))
     rows = reference.collect(tmp_path, epoch_size=57, batch_size=32)
@@ -98,5 +101,6 @@ def test_report_reads_every_scored_checkpoint(tmp_path):
         ("author", 0, 6), ("ours", 0, 6), ("ours", 1, 12)
     ]  # fmt: skip
     assert rows[2]["samples"] == 12 * 57 * 32 and rows[2]["mae_foe_0-1px"] == 30.0
+    assert rows[2]["mae_foe_1-infpx"] == 15.0
     reference.plot(rows, tmp_path / "p.png", floor=4.8)
     assert (tmp_path / "p.png").stat().st_size > 1000

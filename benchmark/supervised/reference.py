@@ -149,7 +149,8 @@ def collect(evals: Path, epoch_size: int, batch_size: int) -> list[dict]:
         row["samples"] = row["epoch"] * epoch_size * batch_size
         row.update({k: m[k] for k in ("mae", "mre", "mle", "depth_error", "p1.25")})
         for band in s["error_by_foe_distance"]:
-            row[f"mae_foe_{band['from_px']:g}-{band['to_px']:g}px"] = band["mae"]
+            to = "inf" if band["to_px"] is None else f"{band['to_px']:g}"  # the last band: open
+            row[f"mae_foe_{band['from_px']:g}-{to}px"] = band["mae"]
         rows.append(row)
     return sorted(rows, key=lambda r: (r["code"], r["seed"], r["epoch"]))
 
