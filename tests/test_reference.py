@@ -38,7 +38,11 @@ def test_the_split_needs_the_legacy_files(tiny_dataset):
         reference.author_split(tiny_dataset)
 
 
-def test_the_torchvision_stand_in_normalises_per_channel():
+def test_the_torchvision_stand_in_normalises_per_channel(monkeypatch):
+    import sys
+
+    for name in ("torchvision", "torchvision.transforms"):  # restored after the test
+        monkeypatch.setitem(sys.modules, name, sys.modules.get(name))
     reference_launcher.torchvision_stand_in()
     import torchvision.transforms as T
 
