@@ -66,6 +66,12 @@ def camera_of(root: str | os.PathLike) -> dict:
     return {"width": int(cam["width"]), "height": int(cam["height"]), "fov_deg": float(fov)}
 
 
+def nominal_displacement(scenes: list[Scene], shift: int) -> float:
+    """Metres a depth network trained on ``scenes`` answers for: ``shift`` frames of the median
+    displacement per frame (its depth targets are rescaled to that)."""
+    return float(shift * np.median([s.displacement for s in scenes]))
+
+
 class FrameStore:
     """Decoded frames and depth maps, all in memory when they fit (else read on demand)."""
 

@@ -24,7 +24,7 @@ from stillbox_gen import layout
 from stillbox_gen.conventions import MAX_DEPTH, NOMINAL_SHIFT
 
 from ..core import runfolder
-from ..core.data import camera_of, load_scenes
+from ..core.data import camera_of, load_scenes, nominal_displacement
 from ..core.errors import FieldError
 
 LAUNCHER = Path(__file__).with_name("reference_launcher.py")
@@ -39,7 +39,8 @@ def author_split(data: Path, val_scenes: int = AUTHOR_VAL_SCENES) -> dict:
     """The dataset's train scenes as the author's loader reads them (``imgs``, ``depth``,
     ``speed``, ``time_step``, ``subdir``: the chunk folder) and the validation pairs (i, i+3)
     of its first ``val_scenes`` val scenes as ``[[img1, img2], depth, displacement]`` paths
-    relative to ``data``. DataError unless the records hold the legacy ``.jpg``/``.npy`` files."""
+    relative to ``data``. FieldError on ``data`` unless the records hold the legacy ``.jpg`` and
+    ``.npy`` files."""
     out: dict = {"train": [], "val": []}
     for split in ("train", "val"):
         for scene in load_scenes(data, split):
@@ -57,8 +58,11 @@ def author_split(data: Path, val_scenes: int = AUTHOR_VAL_SCENES) -> dict:
             elif len(out["val"]) < val_scenes * (scene.frames - NOMINAL_SHIFT):
                 disp = [v * NOMINAL_SHIFT * rec["time_step"] for v in rec["speed"]]
                 for i in range(scene.frames - NOMINAL_SHIFT):
-                    pair = [f"{chunk}/{rec['imgs'][i]}", f"{chunk}/{rec['imgs'][i + 3]}"]
-                    out["val"].append([pair, f"{chunk}/{rec['depth'][i + 3]}", disp])
+                    pair = [
+                        f"{chunk}/{rec['imgs'][i]}",
+                        f"{chunk}/{rec['imgs'][i + NOMINAL_SHIFT]}",
+                    ]
+                    out["val"].append([pair, f"{chunk}/{rec['depth'][i + NOMINAL_SHIFT]}", disp])
     return out
 
 
@@ -92,21 +96,19 @@ def train_author(
 def convert(author_ckpt: Path, data: Path, dest: Path) -> None:
     """The author's checkpoint (``--bn --activation-function elu``: the same layers as
     ``depthnet``) as a checkpoint of this project's ``depthnet`` for ``data``'s camera: its
-    output is depth for 3 frames of the dataset's displacement (the author's nominal shift)."""
+    output is depth for NOMINAL_SHIFT frames of the training split's displacement, as ours."""
     ck = torch.load(author_ckpt, map_location="cpu", weights_only=True)
     if not ck.get("bn") or ck.get("activation_function") != "elu" or ck.get("clamp"):
         raise FieldError(
             "ckpt", "was not trained with --bn --activation-function elu", where=f" {author_ckpt}"
         )
     state = {k.removeprefix(PARALLEL_PREFIX): v for k, v in ck["state_dict"].items()}
-    scenes = load_scenes(data, "train")
-    displacement = scenes[0].displacement
     runfolder.save_checkpoint(
         Path(dest),
         {
             "model": state,
             "model_name": "depthnet",
-            "nominal_displacement": NOMINAL_SHIFT * displacement,
+            "nominal_displacement": nominal_displacement(load_scenes(data, "train"), NOMINAL_SHIFT),
             "shift": NOMINAL_SHIFT,
             "depth_range": [0.0, MAX_DEPTH],
             "camera": camera_of(data),
@@ -118,8 +120,9 @@ def convert(author_ckpt: Path, data: Path, dest: Path) -> None:
 def resolution_floor(data: Path, split: str = "test", shift: int = NOMINAL_SHIFT) -> dict:
     """The full-resolution error of a perfect 1/4-resolution depth network on ``split``'s eval
     pairs (the second frame's depth clipped to MAX_DEPTH, area-downsampled 4x as the training
-    targets are, upsampled back as ``eval`` upsamples outputs): the lowest MAE, MRE and MLE that
-    DepthNet's output resolution allows, in metres for MAE, per image then averaged."""
+    targets are, upsampled back as ``eval`` upsamples outputs): MAE (metres), MRE and MLE per
+    image, then averaged. Not a strict lower bound: another 1/4-resolution map could score a
+    little lower at full resolution; this one is the map DepthNet is trained towards."""
     import torch.nn.functional as F
 
     from ..core import metrics

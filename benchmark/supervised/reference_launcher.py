@@ -105,17 +105,15 @@ def main(argv: list[str]) -> None:
     sys.path.insert(0, str(code))
 
     import datasets.stillbox as stillbox
+    import numpy as np
     import terminal_logger
     import util
 
+    val = [[pair, depth, np.array(d, np.float32)] for pair, depth, d in split["val"]]
+
     def make_dataset(root_dir, split_percent=0, shift=3, seed=None):
         random.seed(seed)  # as the replaced function does: it seeds the random flips
-        return split["train"], [[pair, depth, _array(d)] for pair, depth, d in split["val"]]
-
-    def _array(values):
-        import numpy as np
-
-        return np.array(values, dtype=np.float32)
+        return split["train"], val
 
     save = util.save_checkpoint
 

@@ -42,6 +42,7 @@ from ..core.data import (
     PairDataset,
     camera_of,
     load_scenes,
+    nominal_displacement,
 )
 from ..core.device import resolve_device
 from ..core.errors import FieldError, Ref
@@ -338,9 +339,7 @@ class Trainer:
                 f"must be at least 1 and below the {frames} frames of a scene, got {cfg.shift}",
             )
         self.camera = camera_of(Path(cfg.data))
-        # depth targets are expressed for the nominal shift of the training set's displacement
-        disp = np.median([s.displacement for s in train_scenes])
-        self.nominal_displacement = float(cfg.shift * disp)
+        self.nominal_displacement = nominal_displacement(train_scenes, cfg.shift)
         if self.kind.target is registry.Target.VIDEO:  # no depth: photometric loss (chapter 5)
             from ..unsupervised.training import video_training
 
