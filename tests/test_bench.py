@@ -203,7 +203,7 @@ def test_eval_does_not_depend_on_batch_size_and_report_merges_runs(tiny_dataset,
     )
     for k in m1:  # the network's float32 convolutions differ in the last bits across batch sizes
         assert m1[k] == pytest.approx(m5[k], rel=1e-6, abs=1e-9), k
-    preds = sorted((tmp_path / "e1" / "predictions").glob("*.npy"))
+    preds = sorted((tmp_path / "e1" / "predictions").rglob("depth_*.npy"))
     assert len(preds) == m1["images"] and np.load(preds[0]).shape == (64, 64)
     proc = bench("report", run, tmp_path / "e1", "--out", tmp_path / "cmp")
     assert proc.stdout.count("depthnet-tiny") == 2

@@ -8,7 +8,13 @@ import pytest
 import torch
 
 from benchmark.core.data import FrameStore, load_scenes
-from benchmark.core.flow import depth_from_flow, endpoint_error, flow_from_depth, warp
+from benchmark.core.flow import (
+    depth_from_flow,
+    endpoint_error,
+    flow_errors,
+    flow_from_depth,
+    warp,
+)
 from benchmark.core.geometry import distance_to_foe, focus_of_expansion
 
 H, W = 48, 64
@@ -193,3 +199,30 @@ def test_gt_flow_warps_rendered_frames(default_dataset):
         assert after < 0.8 * before, (scene.index, float(before), float(after))
         checked += 1
     assert checked >= 2
+
+
+def test_flow_outlier_rates_against_numpy():
+    """Fl-all (KITTI 2015: error > 3 px and > 5 % of the true flow) and the 1/3/5 px outlier
+    rates against a numpy transcription, NaN truth left out; a hand case at the boundaries."""
+
+    g = torch.Generator().manual_seed(0)
+    gt = torch.randn(3, 2, 8, 9, generator=g, dtype=torch.float64) * 40
+    pred = gt + torch.randn(3, 2, 8, 9, generator=g, dtype=torch.float64) * 3
+    gt[0, :, :2] = float("nan")
+    m = flow_errors(pred, gt)
+    for b in range(3):
+        t, p = gt[b].numpy(), pred[b].numpy()
+        ok = np.isfinite(t).all(0)
+        err = np.hypot(*(p - t))[ok]
+        mag = np.hypot(*t)[ok]
+        assert m["epe"][b].item() == pytest.approx(err.mean())
+        assert m["fl_all"][b].item() == pytest.approx(np.mean((err > 3) & (err > 0.05 * mag)))
+        for px in (1, 3, 5):
+            assert m[f"out{px}"][b].item() == pytest.approx(np.mean(err > px))
+    # errors 4 px on a 100 px flow (4 % < 5 %: not Fl), 4 px on a 50 px flow (8 %: Fl), 3 px
+    # exactly (not > 3 px)
+    gt = torch.tensor([[[[100.0, 50.0, 10.0]], [[0.0, 0.0, 0.0]]]])
+    pred = gt + torch.tensor([[[[4.0, 4.0, 3.0]], [[0.0, 0.0, 0.0]]]])
+    m = flow_errors(pred, gt)
+    assert m["fl_all"].item() == pytest.approx(1 / 3) and m["out3"].item() == pytest.approx(2 / 3)
+    assert m["out1"].item() == 1.0 and m["out5"].item() == 0.0

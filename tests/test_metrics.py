@@ -11,6 +11,7 @@ import torch
 import torch.nn.functional as F
 
 from benchmark.core.metrics import (
+    DEPTH_METRICS,
     METRICS,
     aggregate,
     image_metrics,
@@ -38,6 +39,18 @@ EXPECTED = {
     "p1.25": [0.25, 0.25],
     "p1.25^2": [0.25, 0.5],
     "p1.25^3": [0.25, 0.75],
+    # The field's three others, from the same differences:
+    #   A: (θ̃−θ)²/θ = 0.5, 0, 2, 18 -> SqRel = 20.5/4; |log10 θ̃/θ| -> log10 2 (as MLE / ln 10);
+    #      e = −ln2, 0, ln2, 2 ln2: E e² − (E e)² = 1.5 ln2² − 0.25 ln2² -> SILog = 100 ln2 √1.25
+    #   B: (θ̃−θ)²/θ = 0.08, 0.5, 1.62, 4.5 -> SqRel = 6.7/4; log10 = log10(8.55)/4;
+    #      SILog = 100 sqrt(E e² − (E e)²), e = ln 1.2, ln 1.5, ln 1.9, ln 2.5
+    "sqrel": [5.125, 1.675],
+    "log10": [0.3010299956639812, 0.23299152868204315],
+    "silog": [77.49621070721791, 27.29253344293942],
+    # gt = 2 m is within the 15 m sensing range everywhere: 8 m is not beyond it (missed 0), and
+    # no pixel is truly beyond it (phantom undefined)
+    "missed_near": [0.0, 0.0],
+    "phantom_near": [math.nan, math.nan],
 }
 
 
@@ -71,8 +84,48 @@ def test_hand_computed_values():
     assert m["valid_pixels"].tolist() == [4, 4]
     summary = aggregate(m)
     for name in METRICS:
-        assert summary[name] == pytest.approx(sum(EXPECTED[name]) / 2, rel=1e-6)
+        assert summary[name] == pytest.approx(sum(EXPECTED[name]) / 2, rel=1e-6, nan_ok=True)
     assert summary["images"] == 2 and summary["images_without_valid_pixels"] == 0
+
+
+def test_field_metrics_against_numpy():
+    """SqRel, log10 and SILog against a numpy transcription of their definitions (KITTI
+    devkit, Monodepth2) on random maps with invalid pixels, clamping and clipping."""
+    pred, gt = random_batch()
+    m = image_metrics(pred, gt)
+    for b in range(len(gt)):
+        g = gt[b].double().numpy()
+        ok = np.isfinite(g) & (g > 0)
+        if not ok.any():
+            continue
+        p = np.clip(pred[b].double().numpy()[ok], 0.1, 100.0)
+        g = np.minimum(g[ok], 100.0)
+        e = np.log(p) - np.log(g)
+        assert m["sqrel"][b].item() == pytest.approx(np.mean((p - g) ** 2 / g), rel=1e-10)
+        assert m["log10"][b].item() == pytest.approx(np.mean(np.abs(np.log10(p / g))), rel=1e-10)
+        silog = 100 * np.sqrt(np.mean(e**2) - np.mean(e) ** 2)
+        assert m["silog"][b].item() == pytest.approx(silog, rel=1e-9)
+        near = g <= 15.0
+        assert m["missed_near"][b].item() == pytest.approx(np.mean(p[near] > 15.0))
+        assert m["phantom_near"][b].item() == pytest.approx(np.mean(p[~near] <= 15.0))
+
+
+def test_silog_ignores_a_global_scale_and_range_metrics_count_each_side():
+    """SILog is scale invariant (θ̃ = 2θ scores 0); missed and phantom count the pixels put on
+    the wrong side of the sensing range, each among the pixels truly on their side, and are
+    left out of the mean for an image with no pixel on that side."""
+    gt = torch.tensor([[[5.0, 10.0], [20.0, 40.0]], [[20.0, 30.0], [40.0, 50.0]]])
+    m = image_metrics(gt * 2, gt)
+    assert m["silog"].tolist() == pytest.approx([0.0, 0.0], abs=1e-6)
+    assert m["mre"].tolist() == pytest.approx([1.0, 1.0])
+    # image 0: 10 m -> 20 m is missed (1 of 2 near pixels); no far pixel comes within 15 m
+    assert m["missed_near"][0].item() == 0.5 and m["phantom_near"][0].item() == 0.0
+    assert math.isnan(m["missed_near"][1].item())  # no pixel within 15 m
+    pred = torch.tensor([[[20.0, 10.0], [11.0, 16.0]]])  # 5 m missed, 20 m a phantom
+    m = image_metrics(pred, gt[:1], sensing_range=12.0)
+    assert m["missed_near"].item() == 0.5 and m["phantom_near"].item() == 0.5
+    summary = aggregate(image_metrics(gt * 2, gt))
+    assert summary["missed_near"] == 0.5 and summary["images"] == 2
 
 
 def test_relative_error_divides_by_ground_truth():
@@ -98,11 +151,12 @@ def test_invalid_pixels_and_images():
     assert m["valid_pixels"].tolist() == [4, 0, 0, 4]
     for name in METRICS:
         assert torch.isnan(m[name][1:3]).all(), name
+    for name in DEPTH_METRICS:
         assert not torch.isnan(m[name][[0, 3]]).any(), name
     summary = aggregate(m)
     assert summary["images"] == 2 and summary["images_without_valid_pixels"] == 2
     for name in METRICS:
-        assert summary[name] == pytest.approx(sum(EXPECTED[name]) / 2, rel=1e-6)
+        assert summary[name] == pytest.approx(sum(EXPECTED[name]) / 2, rel=1e-6, nan_ok=True)
     # without the valid_pixels column the NaN rows are still recognised and excluded
     no_count = {k: v.numpy() for k, v in m.items() if k != "valid_pixels"}
     assert aggregate(no_count) == summary

@@ -15,13 +15,14 @@ import torch
 from test_bench import bench
 
 from benchmark.core import registry
+from benchmark.core.metrics import median_scale
 from benchmark.core.posenet import POSE_SCALE, euler_matrix
 from benchmark.unsupervised.reprojection import rotate_frame
-from benchmark.unsupervised.scaling import median_scale
 from benchmark.unsupervised.sequence_eval import (
     PAIR_TARGET_DEPTH,
     SCALE_GT,
     SCALE_P,
+    SCALE_P_FIXED,
     UPRIGHT,
     UPSIDE_DOWN,
     EvalModel,
@@ -78,8 +79,15 @@ def test_the_pair_closest_to_50_m_is_kept_and_scaled_by_its_displacement():
     m = EvalModel("depthnet-tiny", registry.DEPTH, net, d0=0.15)
     w = _window()
     out = predict(m, w, CPU)
-    assert out["shift"] == 3 and m.scales == (SCALE_P,)
+    assert out["shifts"][SCALE_P] == 3 and m.scales == (SCALE_P, SCALE_P_FIXED)
     torch.testing.assert_close(out[SCALE_P], torch.full((H, W), 90.0), rtol=1e-6, atol=0)
+    # the fixed pair: the reference whose displacement is closest to d0, whatever the outputs:
+    # with d0 = 0.22 m, reference 2 (0.2 m, 2 frames before t): 58 × 0.2 / 0.22
+    fixed = predict(EvalModel("depthnet-tiny", registry.DEPTH, net, d0=0.22), w, CPU)
+    assert fixed["shifts"] == {SCALE_P: 3, SCALE_P_FIXED: 2}
+    torch.testing.assert_close(
+        fixed[SCALE_P_FIXED], torch.full((H, W), 58 * 0.2 / 0.22), rtol=1e-6, atol=0
+    )
     # the pairs (r, t) for r = 0..3, normalised as DepthNet's inputs; stabilised: not warped
     frames = (torch.from_numpy(w.frames).permute(0, 3, 1, 2).float() / 255 - 0.5) / 0.2
     torch.testing.assert_close(net.seen[:, :3], frames[:4])
@@ -88,7 +96,7 @@ def test_the_pair_closest_to_50_m_is_kept_and_scaled_by_its_displacement():
     clamped = EvalModel("depthnet-tiny", registry.DEPTH, _PerPair([5.0, 70.0, 80.0, 90.0]),
                         d0=0.1, clamp=(10.0, 60.0))  # fmt: skip
     out = predict(clamped, w, CPU)  # 60 (ref 1..3) ties: ref 1, 0.3 m: 60 × 3 = 180 m
-    assert out["shift"] == 3
+    assert out["shifts"][SCALE_P] == 3
     torch.testing.assert_close(out[SCALE_P], torch.full((H, W), 180.0), rtol=1e-6, atol=0)
 
 
@@ -222,18 +230,24 @@ def test_a_network_answering_the_truth_scores_no_error(rotating_dataset):
     oracle = EvalModel("depthnet-tiny", registry.DEPTH, _Oracle(order, 0.3), d0=0.3)
     rows = evaluate([constant_plane(), oracle], scenes, CPU, (UPRIGHT, UPSIDE_DOWN), False)
     assert not oracle.net.windows
-    assert [(r["orientation"], r["model"]) for r in rows] == [
-        (UPRIGHT, "constant"), (UPRIGHT, "depthnet-tiny"),
-        (UPSIDE_DOWN, "constant"), (UPSIDE_DOWN, "depthnet-tiny"),
+    assert [(r["orientation"], r["model"], r["scale"]) for r in rows] == [
+        (o, m, s) for o in (UPRIGHT, UPSIDE_DOWN)
+        for m, s in (("constant", "GT"), ("depthnet-tiny", SCALE_P),
+                     ("depthnet-tiny", SCALE_P_FIXED))
     ]  # fmt: skip
     windows = sum(s.frames - 4 for s in scenes)
     for r in rows:
         assert r["images"] == r["sequences"] == windows
-    for r in rows[1::2]:
+    for r in (r for r in rows if r["model"] != "constant"):
         assert r["mae"] < 1e-4 and r["mle"] < 1e-6 and r["p1.25"] == 1.0, r
         assert sum(int(c.split(":")[1]) for c in r["shifts_used"].split()) == windows
-    assert rows[0]["mae"] > 1.0
-    assert rows[0]["mae"] == pytest.approx(rows[2]["mae"])  # a plane has no up and down
+    # the constant plane scores the error of each window's median plane, computed here in numpy
+    errors = []
+    for w in (w for s in scenes for w in scene_windows(s)):
+        g = np.minimum(w.depth[np.isfinite(w.depth) & (w.depth > 0)].astype(np.float64), 100.0)
+        errors.append(np.abs(np.median(g) - g).mean())
+    assert rows[0]["mae"] == pytest.approx(np.mean(errors), rel=1e-9) and rows[0]["mae"] > 1.0
+    assert rows[0]["mae"] == pytest.approx(rows[3]["mae"])  # a plane has no up and down
 
 
 def test_the_thesis_rows_beside_ours():
@@ -273,7 +287,8 @@ def test_eval_sequences_end_to_end(tiny_dataset, rotating_dataset, tmp_path):
     assert [(r["orientation"], r["model"], r["scale"]) for r in rows] == [
         (o, m, s) for o in (UPRIGHT, UPSIDE_DOWN)
         for m, s in (("constant", "GT"), ("depthnet-unsup-tiny", "P"),
-                     ("sfmlearner-tiny", "P"), ("sfmlearner-tiny", "GT"))
+                     ("depthnet-unsup-tiny", SCALE_P_FIXED), ("sfmlearner-tiny", "P"),
+                     ("sfmlearner-tiny", "GT"))
     ]  # fmt: skip
     windows = sum(s.frames - 4 for s in Dataset(rotating_dataset).scenes("test"))
     for r in rows:
@@ -282,7 +297,8 @@ def test_eval_sequences_end_to_end(tiny_dataset, rotating_dataset, tmp_path):
         )
     assert rows[1]["stabilisation"] == "known" and rows[1]["supervision"] == "✗"
     assert rows[1]["thesis_table"] == "5.2" and float(rows[1]["thesis_mae"]) == 10.356
-    assert rows[7]["thesis_table"] == "5.3" and float(rows[7]["thesis_mae"]) == 8.433
+    assert rows[2]["thesis_table"] == "" and rows[2]["stabilisation"] == "known"  # fixed pair
+    assert rows[9]["thesis_table"] == "5.3" and float(rows[9]["thesis_mae"]) == 8.433
     info = json.loads((out / "results.json").read_text())
     assert info["rotating"] and info["orientations"] == [UPRIGHT, UPSIDE_DOWN]
     md = (out / "results.md").read_text()

@@ -18,8 +18,8 @@ from benchmark.core import registry
 from benchmark.core.data import FrameStore, load_scenes
 from benchmark.core.dispnet import ALPHA, BETA, DispNet, SfmLearnerNet
 from benchmark.core.errors import FieldError
+from benchmark.core.metrics import median_scale
 from benchmark.unsupervised.scaling import (
-    median_scale,
     pose_scale,
     pose_windows,
     scale_free_depth,

@@ -131,8 +131,20 @@ def _run_one(model: str, data: Path, out: Path, settings: dict) -> dict | None:
 @click.option(
     "--ckpt",
     type=click.Path(path_type=Path),
-    required=True,
     help="Checkpoint (.pt) written by 'run'.",
+)
+@click.option(
+    "--predictions",
+    type=click.Path(path_type=Path),
+    help="Folder of another method's depth maps, the dataset's layout: "
+    "<chunk>/depth_<s>_<f>.npy (float32 metres) or .png (16-bit, depth × 256); docs/RUNS.md.",
+)
+@click.option(
+    "--model",
+    "user_model",
+    metavar="MODULE:CALLABLE",
+    help="Your own network: a function (in an importable module or a file.py) that returns a "
+    "torch.nn.Module with its weights; contract in benchmark/core/contract.py.",
 )
 @DATA_OPTION
 @click.option(
@@ -145,36 +157,89 @@ def _run_one(model: str, data: Path, out: Path, settings: dict) -> dict | None:
 @click.option(
     "--out",
     type=click.Path(path_type=Path),
-    help="Report folder.  [default: <ckpt folder>/../eval-<dataset>-<split>]",
+    help="Report folder.  [default: --ckpt: <ckpt folder>/../eval-<dataset>-<split>; "
+    "--predictions: beside it, eval-<its name>-<dataset>-<split>; --model: "
+    "eval-<callable>-<dataset>-<split>]",
+)
+@click.option(
+    "--median-scaling",
+    is_flag=True,
+    help="Multiply each depth map by median(ground truth) / median(map) before scoring "
+    "(methods that know depth only up to a scale).",
+)
+@click.option(
+    "--displacement",
+    type=float,
+    help="--model: metres of camera motion its depth answers for.  [default: 3 frames of the "
+    "split's median motion per frame, what a network trained here answers for]",
 )
 @int_option("--batch-size", EVAL_BATCH_SIZE, "Pairs per forward pass (does not change results).")
 @DEVICE_OPTION
 @PREDICTIONS_OPTION
 def eval_cmd(
-    ckpt: Path,
+    ckpt: Path | None,
+    predictions: Path | None,
+    user_model: str | None,
     data: Path,
     split: str,
     out: Path | None,
+    median_scaling: bool,
+    displacement: float | None,
     batch_size: int,
     device: str,
     save_predictions: bool,
 ) -> None:
-    """Score a checkpoint on a dataset split (writes summary.json/.md, per_sample.csv, plots)."""
-    if not ckpt.is_file():
+    """Score a checkpoint, another method's depth files or your own network on a dataset split
+    (writes summary.json/.md, per_sample.csv, plots)."""
+    given = [f for f, v in (("--ckpt", ckpt), ("--predictions", predictions),
+                            ("--model", user_model)) if v is not None]  # fmt: skip
+    if len(given) != 1:
+        raise UserError(
+            "give one of --ckpt, --predictions, --model"
+            + (f" (got {' and '.join(given)})" if given else "")
+        )
+    if displacement is not None and user_model is None:
+        raise UserError("--displacement: only with --model")
+    if save_predictions and predictions is not None:
+        raise UserError("--save-predictions: not with --predictions (they are the input)")
+    if ckpt is not None and not ckpt.is_file():
         raise UserError(f"--ckpt: no such file '{ckpt}'")
     data = dataset_dir(data)
-    out = out or ckpt.resolve().parent.parent / f"eval-{data.resolve().name}-{split}"
+    name = data.resolve().name
+    if ckpt is not None:
+        out = out or ckpt.resolve().parent.parent / f"eval-{name}-{split}"
+    elif predictions is not None:
+        out = out or predictions.resolve().parent / f"eval-{predictions.name}-{name}-{split}"
+    else:
+        out = out or Path(f"eval-{user_model.rpartition(':')[2]}-{name}-{split}")
     check_out_folder(out, error=UserError)
-    from ..supervised.runner import score_checkpoint
+    for flag, folder in (("--data", data), ("--predictions", predictions)):
+        if folder is not None and out.resolve().is_relative_to(folder.resolve()):
+            raise UserError(
+                f"--out: '{out}' is inside {flag} '{folder}'; write the report elsewhere"
+            )
+    from ..supervised import runner
 
-    try:  # checks the checkpoint and the data before anything is written to --out
-        s = score_checkpoint(ckpt, data, split, out, device, batch_size, save_predictions)
+    try:  # checks the method and the data before anything is written to --out
+        if ckpt is not None:
+            s = runner.score_checkpoint(
+                ckpt, data, split, out, device, batch_size, save_predictions,
+                median_scaling=median_scaling,
+            )  # fmt: skip
+        elif predictions is not None:
+            s = runner.score_predictions(predictions, data, split, out, batch_size, median_scaling)
+        else:
+            s = runner.score_user_model(
+                user_model, data, split, out, device, batch_size, displacement, median_scaling,
+                save_predictions,
+            )  # fmt: skip
     except ValueError as e:
         raise user_error(e) from None
     m = s["metrics"]
     click.echo(
-        f"{s['model']}: MAE {m['mae']:.3f} m, MRE {m['mre']:.3f}, MLE {m['mle']:.3f}"
-        f"{_gt_scaled(m)} on {s['split']} ({m['images']} pairs); report in {out / SUMMARY_MD}"
+        f"{s['model']}: MAE {m['mae']:.3f} m, MRE (AbsRel) {m['mre']:.3f}, MLE {m['mle']:.3f}, "
+        f"RMSE {m['sae']:.3f} m, δ<1.25 {m['p1.25']:.3f}{_gt_scaled(m)} on {s['split']} "
+        f"({m['images']} pairs); report in {out / SUMMARY_MD}"
     )
 
 

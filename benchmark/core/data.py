@@ -117,6 +117,12 @@ def normalise(img: np.ndarray) -> np.ndarray:
     return ((img.astype(np.float32) / 255.0 - 0.5) / 0.2).transpose(2, 0, 1)
 
 
+def eval_firsts(scene: Scene, shift: int) -> range:
+    """First frames i of a scene's evaluation pairs (i, i + ``shift``): every frame that has a
+    frame ``shift`` later."""
+    return range(len(scene.rgb) - shift)
+
+
 class PairDataset(torch.utils.data.Dataset):
     """Pairs of one split. ``mode='train'``: one random pair per frame index (original sampling);
     ``mode='eval'``: every fixed forward pair (i, i + shift).
@@ -154,7 +160,7 @@ class PairDataset(torch.utils.data.Dataset):
             if mode == "train":
                 self.items += [(k, f) for f in range(len(s.rgb))]
             else:
-                self.items += [(k, f) for f in range(len(s.rgb) - shift)]
+                self.items += [(k, f) for f in eval_firsts(s, shift)]
 
     def set_epoch(self, epoch: int) -> None:
         self.epoch = epoch

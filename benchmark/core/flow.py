@@ -164,6 +164,38 @@ def endpoint_error(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
     return err.sum((1, 2)) / valid.sum((1, 2)).to(torch.float64)
 
 
+#: KITTI 2015's outlier rule (Fl): an end-point error above both this many pixels and this share
+#: of the true flow's length
+FL_PIXELS, FL_SHARE = 3.0, 0.05
+#: thresholds (pixels) of the plain outlier rates ``out1``, ``out3``, ``out5``
+OUTLIER_PIXELS = (1, 3, 5)
+FLOW_FORMULAS = {
+    "fl_all": f"Fl-all = share of pixels with ‖F̃ − F‖ > {FL_PIXELS:g} px and > "
+    f"{FL_SHARE:.0%} of ‖F‖ (KITTI 2015)",
+    **{f"out{t}": f"out{t} = share of pixels with ‖F̃ − F‖ > {t} px" for t in OUTLIER_PIXELS},
+}
+
+
+def flow_errors(pred: torch.Tensor, gt: torch.Tensor) -> dict[str, torch.Tensor]:
+    """Per image ``(B,)`` float64: ``epe`` (:func:`endpoint_error`), ``fl_all`` and ``out1``,
+    ``out3``, ``out5`` (:data:`FLOW_FORMULAS`), over the pixels whose ground truth is finite
+    (NaN for an image without any). ``pred``, ``gt``: ``(B, 2, H, W)`` pixels."""
+    out = {"epe": endpoint_error(pred, gt)}
+    gt = gt.to(device=pred.device, dtype=torch.float64)
+    valid = torch.isfinite(gt).all(1)
+    n = valid.sum((1, 2)).to(torch.float64)
+    truth = torch.nan_to_num(gt)
+    err = (pred.to(torch.float64) - truth).norm(dim=1)
+
+    def share(hit: torch.Tensor) -> torch.Tensor:
+        return (hit & valid).sum((1, 2)).to(torch.float64) / n
+
+    out["fl_all"] = share((err > FL_PIXELS) & (err > FL_SHARE * truth.norm(dim=1)))
+    for t in OUTLIER_PIXELS:
+        out[f"out{t}"] = share(err > t)
+    return out
+
+
 def warp(image_b: torch.Tensor, flow: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Frame b resampled on frame a's grid: ``out[:, :, p] = image_b[:, :, p + flow(p)]``.
 

@@ -16,6 +16,7 @@ Conventions
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -24,24 +25,80 @@ import torch.nn.functional as F
 from stillbox_gen.conventions import MAX_DEPTH  # metres: predictions clamped, ground truth clipped
 
 MIN_DEPTH = 0.1  # metres: predictions are clamped up to this before scoring (thesis 3.6.2)
+#: metres: the range within which depth becomes obstacles (the closed-loop flight's sensing range)
+SENSING_RANGE = 15.0
 
-METRICS = ("mae", "mre", "mle", "sae", "sle", "p1.25", "p1.25^2", "p1.25^3")
+
+@dataclass(frozen=True)
+class Metric:
+    """One per-image measure: ``label`` its name in the thesis' tables (Table 2.3), ``field``
+    the name the monocular-depth literature reports it under (KITTI devkit, Monodepth2; "" when
+    only the thesis uses it), ``unit`` ("m", or "" for none), ``formula`` in words and maths
+    (θ̃ prediction, θ ground truth, E the mean over the scored pixels of one image)."""
+
+    label: str
+    field: str
+    unit: str
+    formula: str
+
+
+#: Every depth measure, in table order: the thesis' eight, the field's three others, then the
+#: obstacle-avoidance pair. The one place metrics are defined; reports derive their columns here.
+METRIC_TABLE: dict[str, Metric] = {
+    "mae": Metric("MAE", "", "m", "MAE = E|θ̃ − θ|  (metres)"),
+    "mre": Metric("MRE", "AbsRel", "", "MRE = AbsRel = E|θ̃ − θ| / θ"),
+    "mle": Metric("MLE", "", "", "MLE = E|log θ̃ − log θ|  (natural log)"),
+    "sae": Metric("SAE", "RMSE", "m", "SAE = RMSE = sqrt(E(θ̃ − θ)²)  (metres)"),
+    "sle": Metric("SLE", "RMSE log", "", "SLE = RMSE log = sqrt(E(log θ̃ − log θ)²)  (natural log)"),
+    "p1.25": Metric("P1.25", "δ<1.25", "", "P_1.25 = δ<1.25 = E[max(θ̃/θ, θ/θ̃) < 1.25]"),
+    "p1.25^2": Metric("P1.25²", "δ<1.25²", "", "P_1.25² = E[max(θ̃/θ, θ/θ̃) < 1.25²]"),
+    "p1.25^3": Metric("P1.25³", "δ<1.25³", "", "P_1.25³ = E[max(θ̃/θ, θ/θ̃) < 1.25³]"),
+    "sqrel": Metric("SqRel", "SqRel", "m", "SqRel = E(θ̃ − θ)² / θ  (metres)"),
+    "log10": Metric("log10", "log10", "", "log10 = E|log10 θ̃ − log10 θ|"),
+    "silog": Metric(
+        "SILog",
+        "SILog",
+        "",
+        "SILog = 100 · sqrt(E e² − (E e)²), e = log θ̃ − log θ (natural log; KITTI devkit)",
+    ),
+    "missed_near": Metric(
+        "missed",
+        "",
+        "",
+        f"missed = share of the pixels with θ ≤ r estimated beyond r (r = {SENSING_RANGE:g} m: "
+        "obstacles not seen); mean over the images that have such pixels",
+    ),
+    "phantom_near": Metric(
+        "phantom",
+        "",
+        "",
+        f"phantom = share of the pixels with θ > r estimated within r (r = {SENSING_RANGE:g} m: "
+        "obstacles that are not there); mean over the images that have such pixels",
+    ),
+}
+
+THESIS_METRICS = ("mae", "mre", "mle", "sae", "sle", "p1.25", "p1.25^2", "p1.25^3")
+#: measures over a subset of an image's pixels: NaN for an image without any, which
+#: :func:`aggregate` leaves out of their mean
+RANGE_METRICS = ("missed_near", "phantom_near")
+#: every measure :func:`image_metrics` returns (besides ``valid_pixels``)
+METRICS = tuple(METRIC_TABLE)
+DEPTH_METRICS = tuple(m for m in METRICS if m not in RANGE_METRICS)
 
 #: threshold δ of each precision metric P_δ
 DELTAS = {"p1.25": 1.25, "p1.25^2": 1.25**2, "p1.25^3": 1.25**3}
 
-FORMULAS: dict[str, str] = {
-    "mae": "MAE = E|θ̃ − θ|  (metres)",
-    "mre": "MRE = E|θ̃ − θ| / θ",
-    "mle": "MLE = E|log θ̃ − log θ|  (natural log)",
-    "sae": "SAE = sqrt(E(θ̃ − θ)²)  (metres)",
-    "sle": "SLE = sqrt(E(log θ̃ − log θ)²)  (natural log)",
-    "p1.25": "P_1.25 = E[max(θ̃/θ, θ/θ̃) < 1.25]",
-    "p1.25^2": "P_1.25² = E[max(θ̃/θ, θ/θ̃) < 1.25²]",
-    "p1.25^3": "P_1.25³ = E[max(θ̃/θ, θ/θ̃) < 1.25³]",
-}
-"""Each metric in words/maths: θ̃ prediction, θ ground truth, E the mean over the valid pixels of
-one image."""
+FORMULAS: dict[str, str] = {name: m.formula for name, m in METRIC_TABLE.items()}
+"""Each metric in words/maths, by name."""
+
+
+def header(name: str) -> str:
+    """Metric ``name``'s table header: the thesis' label, then the field's name and the unit,
+    e.g. "MAE (m)", "MRE (AbsRel)", "SAE (RMSE, m)"."""
+    m = METRIC_TABLE[name]
+    extra = [x for x in (m.field if m.field != m.label else "", m.unit) if x]
+    return f"{m.label} ({', '.join(extra)})" if extra else m.label
+
 
 AVERAGING_RULE = (
     f"Metrics are computed per image over its valid pixels (finite ground truth > 0), then "
@@ -61,6 +118,7 @@ def image_metrics(
     gt: torch.Tensor,
     max_depth: float = MAX_DEPTH,
     min_depth: float = MIN_DEPTH,
+    sensing_range: float = SENSING_RANGE,
 ) -> dict[str, torch.Tensor]:
     """Per-image metrics of a batch of depth maps.
 
@@ -70,11 +128,14 @@ def image_metrics(
         max_depth: predictions are clamped to ``[min_depth, max_depth]`` and ground truth is
             clipped to ``max_depth`` before scoring.
         min_depth: lower clamp of the predictions (keeps log and ratios finite).
+        sensing_range: metres, the ``r`` of ``missed_near`` and ``phantom_near``.
 
     Returns:
         ``{name: (B,) float64 tensor}`` for every name in :data:`METRICS` (NaN for an image with
-        no valid pixel), plus ``"valid_pixels"``: ``(B,) int64`` count of valid pixels. Tensors
-        are on ``pred``'s device. A NaN prediction on a valid pixel makes that image's metrics NaN.
+        no valid pixel; :data:`RANGE_METRICS` also for an image without pixels on that side of
+        ``sensing_range``), plus ``"valid_pixels"``: ``(B,) int64`` count of valid pixels.
+        Tensors are on ``pred``'s device. A NaN prediction on a valid pixel makes that image's
+        metrics NaN.
     """
     if pred.ndim != 3 or pred.shape != gt.shape:
         raise ValueError(
@@ -92,14 +153,15 @@ def image_metrics(
     gt = torch.where(valid, gt.clamp(max=max_depth), torch.ones_like(gt))
 
     count = valid.sum(dim=(1, 2))
-    n = count.to(torch.float64)  # 0 for an all-invalid image -> 0/0 = NaN below
 
-    def mean(values: torch.Tensor) -> torch.Tensor:
-        return torch.where(valid, values, torch.zeros_like(values)).sum(dim=(1, 2)) / n
+    def mean(values: torch.Tensor, among: torch.Tensor = valid) -> torch.Tensor:
+        total = torch.where(among, values, torch.zeros_like(values)).sum(dim=(1, 2))
+        return total / among.sum(dim=(1, 2)).to(torch.float64)  # 0/0 = NaN: no such pixel
 
     diff = pred - gt
     log_diff = torch.log(pred) - torch.log(gt)
     ratio = torch.maximum(pred / gt, gt / pred)
+    near = valid & (gt <= sensing_range)
 
     out = {
         "mae": mean(diff.abs()),
@@ -110,6 +172,13 @@ def image_metrics(
     }
     for name, delta in DELTAS.items():
         out[name] = mean((ratio < delta).to(torch.float64))
+    out["sqrel"] = mean(diff.square() / gt)
+    out["log10"] = out["mle"] / math.log(10)
+    # variance form of the KITTI devkit; clamped at 0 against rounding when e is constant
+    spread = mean(log_diff.square()) - mean(log_diff).square()
+    out["silog"] = 100 * spread.clamp(min=0).sqrt()
+    out["missed_near"] = mean((pred > sensing_range).to(torch.float64), near)
+    out["phantom_near"] = mean((pred <= sensing_range).to(torch.float64), valid & ~near)
     out["valid_pixels"] = count.to(torch.int64)
     return out
 
@@ -126,7 +195,8 @@ def aggregate(per_image: dict[str, np.ndarray | torch.Tensor]) -> dict[str, floa
     Args:
         per_image: ``{name: (N,) values}``, typically :func:`image_metrics` outputs concatenated
             over batches. Every key except ``"valid_pixels"`` is averaged (so extra per-image
-            measures such as an ``original_depth_error`` column are averaged the same way).
+            measures such as an ``original_depth_error`` column are averaged the same way);
+            :data:`RANGE_METRICS` over the images where they are not NaN.
             An image counts as having valid pixels when ``valid_pixels > 0`` if that key is given,
             else when its first :data:`METRICS` value (or, without any, every value) is not NaN.
 
@@ -153,10 +223,28 @@ def aggregate(per_image: dict[str, np.ndarray | torch.Tensor]) -> dict[str, floa
     for name, values in arrays.items():
         if name == "valid_pixels":
             continue
-        summary[name] = float(values[has_valid].mean()) if has_valid.any() else math.nan
+        kept = values[has_valid]
+        if name in RANGE_METRICS:  # images without pixels on that side of the range: left out
+            kept = kept[~np.isnan(kept)]
+        summary[name] = float(kept.mean()) if len(kept) else math.nan
     summary["images"] = int(has_valid.sum())
     summary["images_without_valid_pixels"] = int(n_images - has_valid.sum())
     return summary
+
+
+def median_scale(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
+    """``(B,)`` float64: per image, median(gt) / median(pred) over ``gt``'s valid pixels
+    (``pred``, ``gt``: ``(B, H, W)``; ground truth clipped to MAX_DEPTH as it is scored); NaN for
+    an image without one. Medians interpolate between the two middle values for an even count
+    (``torch.quantile``, as numpy.median). The "median scaling" of monocular-depth papers
+    (Zhou et al. 2017; Monodepth2's ``--eval_mono``)."""
+    valid = valid_mask(gt)
+    out = torch.full((len(gt),), float("nan"), dtype=torch.float64, device=gt.device)
+    for b in range(len(gt)):
+        if valid[b].any():
+            g = gt[b][valid[b]].double().clamp(max=MAX_DEPTH).quantile(0.5)
+            out[b] = g / pred[b][valid[b]].double().quantile(0.5)
+    return out
 
 
 def original_depth_error(

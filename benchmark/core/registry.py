@@ -95,6 +95,7 @@ class Scoring(Enum):
     CONSTANT = auto()  # the training split's median depth at every pixel
     SCALE_FREE = auto()  # depth up to a scale: × |pair translation| / |PoseNet's| ("P"), and
     # × median(ground truth) / median(prediction) per image ("GT", reported beside it)
+    GIVEN = auto()  # depth maps read from files (another method's predictions), as given
 
 
 @dataclass(frozen=True)
@@ -129,9 +130,11 @@ UNSUPERVISED = Kind("unsupervised-depth", Target.VIDEO, Scoring.DEPTH, best_by="
 SCALE_FREE = Kind("scale-free-depth", Target.VIDEO, Scoring.SCALE_FREE, best_by="mae")
 ORACLE_FLOW = Kind("oracle-flow", None, Scoring.EXACT_FLOW)
 CONSTANT = Kind("constant", None, Scoring.CONSTANT)
+#: another method's depth maps, read from files (eval --predictions)
+PREDICTIONS = Kind("given-depth", None, Scoring.GIVEN)
 #: every kind of method: a depth network (supervised or not, metric or up to a scale), a flow
-#: network (depth by geometry), or no network
-KINDS = (DEPTH, FLOW, UNSUPERVISED, SCALE_FREE, ORACLE_FLOW, CONSTANT)
+#: network (depth by geometry), no network, or another method's files
+KINDS = (DEPTH, FLOW, UNSUPERVISED, SCALE_FREE, ORACLE_FLOW, CONSTANT, PREDICTIONS)
 
 TINY_WIDTH = 0.125  # channel multiplier of the -tiny variants
 

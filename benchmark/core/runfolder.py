@@ -13,7 +13,8 @@ Layout of a run folder::
     per_sample.csv       metrics per scored pair
     pixels.npz           a pixel subsample of the scored pairs (for the figures)
     plots/               PNG figures (:data:`PLOTS`)
-    predictions/         depth maps of every scored pair (``--save-predictions``)
+    predictions/         depth of every scored pair's second frame (``--save-predictions``;
+                         :func:`prediction_name`)
     .stillbox.lock       while a run writes the folder (stillbox_gen.lock, via runner.run_method)
 
 A comparison (``compare --out DIR``, ``report --out OUT``) writes ``OUT.md``, ``OUT.csv`` and
@@ -46,6 +47,7 @@ from typing import BinaryIO
 import numpy as np
 import torch
 
+from stillbox_gen import layout
 from stillbox_gen.formats import TEMP_INFIX, atomic_write, atomic_write_text
 
 from .checkpoint import first_line
@@ -296,10 +298,19 @@ def append_row(run: Path, name: str, row: dict) -> None:
 # ---------------------------------------------------------------- scores
 
 
-def save_prediction(folder: Path, scene: int, i1: int, i2: int, depth: np.ndarray) -> None:
-    """``predictions/<scene:06d>_<i1:02d>_<i2:02d>.npy``: float32 depth (H, W) in metres of the
-    pair (i1, i2) of a scene, at full resolution."""
-    np.save(Path(folder) / f"{scene:06d}_{i1:02d}_{i2:02d}.npy", depth.astype(np.float32))
+def prediction_name(scene: int, frame: int, ext: str = "npy") -> str:
+    """``<chunk>/depth_<s>_<f>.<ext>``: the prediction of frame ``frame`` of scene ``scene``
+    (global index) in a predictions folder, the dataset's own chunk and depth-file names
+    (stillbox_gen.layout), so that ``eval --predictions`` reads what ``--save-predictions``
+    writes."""
+    return f"{layout.chunk_name(scene)}/{layout.depth_name(layout.local_index(scene), frame, ext)}"
+
+
+def save_prediction(folder: Path, scene: int, frame: int, depth: np.ndarray) -> None:
+    """:func:`prediction_name` under ``folder``: float32 depth (H, W) in metres of frame
+    ``frame`` (a scored pair's second frame) at full resolution, written atomically."""
+    array = depth.astype(np.float32)
+    atomic_write_binary(Path(folder) / prediction_name(scene, frame), lambda f: np.save(f, array))
 
 
 def write_report(

@@ -16,6 +16,8 @@ import numpy as np
 
 from stillbox_gen import camera
 
+from ..core.metrics import SENSING_RANGE
+
 
 @dataclass(frozen=True)
 class SensingConfig:
@@ -25,7 +27,7 @@ class SensingConfig:
     ``keyframe_spacing`` (m) since the last kept one (the camera looks ahead only: obstacles
     being passed leave its view, and a drone at rest must not forget what it saw coming)."""
 
-    max_range: float = 15.0
+    max_range: float = SENSING_RANGE
     stride: int = 2
     voxel: float = 0.2
     keyframes: int = 20

@@ -152,16 +152,15 @@ class Scored:
         if not self.frames:
             return {"depth_frames": 0} | dict.fromkeys(ERROR_KEYS)
         pred, gt = (torch.from_numpy(np.stack(a)) for a in zip(*self.frames, strict=True))
-        m = metrics.image_metrics(pred, gt)
+        m = metrics.image_metrics(pred, gt, sensing_range=self.near_range)
         kept = m["valid_pixels"] > 0
-        near = gt <= self.near_range
-        near_gt = torch.where(near, gt, torch.full_like(gt, torch.nan))  # far pixels invalid
+        near_gt = torch.where(gt <= self.near_range, gt, torch.nan)  # far pixels invalid
         per_frame = {
             "depth_mae_m": m["mae"],
             "depth_mre": m["mre"],
             "near_mae_m": metrics.image_metrics(pred, near_gt)["mae"],
-            "missed_near": _fraction(pred > self.near_range, near),
-            "phantom_near": _fraction(pred <= self.near_range, ~near & (gt > 0)),
+            "missed_near": m["missed_near"],
+            "phantom_near": m["phantom_near"],
         }
         out = {"depth_frames": int(kept.sum())}
         for key, values in per_frame.items():
@@ -169,9 +168,3 @@ class Scored:
             values = values[~torch.isnan(values)]
             out[key] = float(values.mean()) if len(values) else None
         return out
-
-
-def _fraction(hit: torch.Tensor, among: torch.Tensor) -> torch.Tensor:
-    """Per frame (B,): the fraction of the ``among`` pixels where ``hit`` (NaN where none)."""
-    n = among.sum((1, 2)).double()
-    return (hit & among).sum((1, 2)).double() / n.where(n > 0, torch.nan)

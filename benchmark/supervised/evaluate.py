@@ -27,7 +27,9 @@ import torch.nn.functional as F
 from stillbox_gen.conventions import MAX_DEPTH
 
 from ..core import flow, geometry, metrics, runfolder
+from ..core.contract import depth_output
 from ..core.registry import DEPTH, Kind, Scoring
+from .predictions import PredictionFiles
 
 
 @dataclass
@@ -40,7 +42,8 @@ class Method:
     ``flow_noise``: standard deviation (pixels) of Gaussian noise added to the exact flow of
     ``oracle-flow`` (seeded by scene and frames: the conditioning of the geometry near the FOE);
     ``depth_range``: metres, a depth network's outputs are clamped to it before the displacement
-    scaling (its training range; None: not clamped).
+    scaling (its training range; None: not clamped); ``predictions``: the files of a method of
+    kind PREDICTIONS (depth of the pair's second frame, as given).
     """
 
     kind: Kind
@@ -49,6 +52,7 @@ class Method:
     constant: float | None = None
     flow_noise: float = 0.0  # oracle-flow: Gaussian noise (px, per component) added to the flow
     depth_range: tuple[float, float] | None = None
+    predictions: PredictionFiles | None = None  # Scoring.GIVEN: the files read
 
 
 def predict(
@@ -68,7 +72,7 @@ def predict(
         return scale_free_depth(method.model, batch, store, device)
     if scoring is Scoring.DEPTH:
         scale = batch["translation"].norm(dim=1).to(device) / method.nominal_displacement
-        raw = method.model(batch["input"].to(device))[0]
+        raw = depth_output(method.model(batch["input"].to(device)))
         if method.depth_range is not None:
             raw = raw.clamp(*method.depth_range)
         out["depth_q"] = raw * scale.view(-1, 1, 1, 1)
@@ -76,6 +80,8 @@ def predict(
         return out
     if scoring is Scoring.CONSTANT:
         out["depth"] = torch.full_like(gt, method.constant)
+    elif scoring is Scoring.GIVEN:
+        out["depth"] = method.predictions.batch(batch["scene"], batch["frames"][:, 1]).to(device)
     elif scoring in (Scoring.FLOW, Scoring.EXACT_FLOW):
         K = batch["K"].to(device, torch.float64)
         back = -batch["translation"].to(device, torch.float64)  # second frame -> first frame
@@ -130,11 +136,14 @@ def evaluate(
     nominal_displacement: float | None = None,
     collect: bool = True,
     predictions_dir: Path | None = None,
+    median_scaling: bool = False,
     plot_pixels: int = 400_000,
     grid_samples: int = 6,
 ) -> EvalResult:
     """Score a method (or a depth network with its ``nominal_displacement``) on an eval-mode
-    PairDataset; returns aggregated and per-pair metrics (plus ``epe`` for flow methods)."""
+    PairDataset; returns aggregated and per-pair metrics (plus ``epe`` for flow methods).
+    ``median_scaling``: every depth map is multiplied by median(ground truth) / median(map)
+    over its valid pixels first (metrics.median_scale; the depth error's 1/4 map too)."""
     if isinstance(method, torch.nn.Module):
         method = Method(DEPTH, method, nominal_displacement)
     model = method.model
@@ -153,6 +162,10 @@ def evaluate(
         gt = batch["target"].to(device)
         h, w = gt.shape[-2:]
         out = predict(method, batch, device, getattr(dataset, "store", None))
+        if median_scaling:
+            scale = metrics.median_scale(out["depth"], gt).to(out["depth"].dtype)
+            out["depth"] = out["depth"] * scale.view(-1, 1, 1)
+            out["depth_q"] = out["depth_q"] * scale.view(-1, 1, 1, 1).to(out["depth_q"].dtype)
         pred = out["depth"]
         m = metrics.image_metrics(pred, gt)
         m["depth_error"] = metrics.original_depth_error(out["depth_q"], gt)
@@ -160,7 +173,7 @@ def evaluate(
             with_gt = metrics.image_metrics(out["depth_gt"], gt)
             m.update({f"gt_{k}": v for k, v in with_gt.items() if k != "valid_pixels"})
         if "flow" in out:
-            m["epe"] = flow.endpoint_error(out["flow"], out["gt_flow"])
+            m.update(flow.flow_errors(out["flow"], out["gt_flow"]))
         for k, v in m.items():
             per_image.setdefault(k, []).append(v.cpu())
         pred, gt = pred.cpu(), gt.cpu()
@@ -175,7 +188,7 @@ def evaluate(
                 }
             )
             if predictions_dir is not None:
-                runfolder.save_prediction(predictions_dir, scene, i1, i2, pred[b].numpy())
+                runfolder.save_prediction(predictions_dir, scene, i2, pred[b].numpy())
             if not collect:
                 continue
             K, t = batch["K"][b].numpy().astype(np.float64), batch["translation"][b].numpy()

@@ -11,24 +11,22 @@ import numpy as np
 
 from stillbox_gen.conventions import MAX_DEPTH, NOMINAL_SHIFT
 
-from ..core import metrics, registry, runfolder
+from ..core import flow, metrics, registry, runfolder
 from ..core.registry import Scoring
 from ..core.runfolder import plot_path
 from . import plots
 from .evaluate import EvalResult
 
-COLUMNS = ("mae", "mre", "mle", "sae", "sle", "p1.25", "p1.25^2", "p1.25^3", "depth_error", "epe")
+#: summary and comparison columns: every measure of core.metrics, then the public code's
+#: "depth error" and flow methods' end-point error and outlier rates
+FLOW_COLUMNS = ("epe", "fl_all", *(f"out{t}" for t in flow.OUTLIER_PIXELS))
+COLUMNS = (*metrics.METRICS, "depth_error", *FLOW_COLUMNS)
 HEADERS = (
-    "MAE (m)",
-    "MRE",
-    "MLE",
-    "SAE (m)",
-    "SLE",
-    "P1.25",
-    "P1.25²",
-    "P1.25³",
+    *(metrics.header(m) for m in metrics.METRICS),
     "depth error (m)",
     "EPE (px)",
+    "Fl-all",
+    *(f"> {t} px" for t in flow.OUTLIER_PIXELS),
 )
 # Thesis Tables 3.4 / 3.5 (StillBox validation set, 64 px) and the public code's depth error.
 THESIS_64 = {
@@ -61,7 +59,13 @@ SCALE_RULES = {
     "/ |PoseNet's translation between the pair's frames| (no ground truth); GT (the metrics "
     "prefixed gt_) = prediction × median(ground truth) / median(prediction) per image "
     "(benchmark.unsupervised.scaling)",
+    Scoring.GIVEN: "the prediction files' depth (metres), as given: no scaling",
 }
+#: what summary.json's "scale" adds when eval ran with --median-scaling
+MEDIAN_SCALING_RULE = (
+    "; then × median(ground truth) / median(prediction) per image over its valid pixels "
+    "(median scaling: the scale is taken from the ground truth)"
+)
 FOE_BIN_EDGES = (0.0, 1.0, 2.0, 4.0, 8.0, 16.0, 32.0, 64.0, 128.0, np.inf)  # pixels
 
 
@@ -142,14 +146,21 @@ def _kind(model: str) -> registry.Kind:
     return registry.MODELS[model].kind if model in registry.MODELS else registry.DEPTH
 
 
-def summarize(model: str, result: EvalResult, info: dict) -> dict:
+def summarize(
+    model: str, result: EvalResult, info: dict, kind: registry.Kind | None = None
+) -> dict:
     """summary.json's content: model, output, ``info`` (dataset, split, timing…), metrics, every
-    formula, the averaging and scale rules, the error by FOE distance, the thesis' numbers."""
-    kind = _kind(model)
+    formula, the averaging and scale rules, the error by FOE distance, the thesis' numbers.
+    ``kind``: the method's (default: the registered ``model``'s, else a depth network's); an
+    ``info["median_scaling"]`` that is true is added to the scale rule."""
+    kind = kind or _kind(model)
+    scale = SCALE_RULES[kind.scored_as]
+    if info.get("median_scaling"):
+        scale += MEDIAN_SCALING_RULE
     px = result.pixels
     formulas = {**metrics.FORMULAS, "depth_error": DEPTH_ERROR_FORMULA}
     if "epe" in result.summary:
-        formulas["epe"] = EPE_FORMULA
+        formulas.update(epe=EPE_FORMULA, **flow.FLOW_FORMULAS)
     return {
         "model": model,
         "output": kind.name,
@@ -157,7 +168,7 @@ def summarize(model: str, result: EvalResult, info: dict) -> dict:
         "metrics": result.summary,
         "formulas": formulas,
         "averaging_rule": metrics.AVERAGING_RULE,
-        "scale": SCALE_RULES[kind.scored_as],
+        "scale": scale,
         "error_by_foe_distance": foe_bins(px["foe_distance"], px["abs_err"]) if px else [],
         "thesis_reference_64px": THESIS_64.get(model.removesuffix("-tiny")),
     }

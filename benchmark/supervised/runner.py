@@ -11,6 +11,7 @@ ValueError with a one-line message.
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 import time
 from pathlib import Path
@@ -23,14 +24,25 @@ from stillbox_gen.lock import folder_lock
 from ..core import registry, runfolder
 from ..core.checkpoint import load_checkpoint, load_weights, source_error
 from ..core.config import EVAL_BATCH_SIZE, TrainConfig, default
-from ..core.data import FrameStore, PairDataset, Scene, load_scenes, read_depth
+from ..core.contract import load_user_model
+from ..core.data import (
+    FrameStore,
+    PairDataset,
+    Scene,
+    eval_firsts,
+    load_scenes,
+    nominal_displacement,
+    read_depth,
+)
 from ..core.device import resolve_device
 from ..core.errors import FieldError
 from . import report
 from .evaluate import EvalResult, Method, evaluate
+from .predictions import PredictionFiles
 from .train import Trainer, environment, resumed_settings
 
 MEDIAN_FRAMES = 2000  # at most this many training frames (evenly spread) for the constant
+PREDICTIONS_NAME = "predictions"  # summary.json's model of eval --predictions
 ORACLE_FLOW_NOISE_PX = 0.05  # oracle-flow is also scored with this much flow noise (sensitivity)
 
 
@@ -46,6 +58,14 @@ def eval_split(
     ``shift`` (frames) not below the scenes' frame count is a FieldError on ``shift`` (on
     ``ckpt`` when the shift is that checkpoint's), raised before any frame is read.
     ``rotations``: scenes with camera rotations are accepted (load_scenes)."""
+    split, scenes = eval_scenes(data, split, shift, ckpt, rotations)
+    return split, scenes, PairDataset(FrameStore(scenes, progress=progress), "eval", shift)
+
+
+def eval_scenes(
+    data: Path, split: str, shift: int, ckpt: Path | None = None, rotations: bool = False
+) -> tuple[str, list[Scene]]:
+    """:func:`eval_split`'s split and scenes, checked, before any frame is read."""
     scenes = load_scenes(data, split, rotations)
     if not scenes and split == "test":
         split, scenes = "val", load_scenes(data, "val", rotations)
@@ -57,7 +77,12 @@ def eval_split(
         if ckpt is not None:
             raise source_error("ckpt", ckpt, f"its 'shift' {text}")
         raise FieldError("shift", text)
-    return split, scenes, PairDataset(FrameStore(scenes, progress=progress), "eval", shift)
+    return split, scenes
+
+
+def frame_size(scenes: list[Scene]) -> tuple[int, int]:
+    """(H, W) of the scenes' frames (the first frame of the first scene)."""
+    return tuple(scenes[0].load_rgb(0).shape[:2])
 
 
 def median_depth(scenes: list[Scene], max_frames: int = MEDIAN_FRAMES) -> tuple[float, int]:
@@ -72,12 +97,18 @@ def median_depth(scenes: list[Scene], max_frames: int = MEDIAN_FRAMES) -> tuple[
 
 
 def write_scores(
-    out: Path, name: str, result: EvalResult, info: dict, extra: dict | None = None, md: str = ""
+    out: Path,
+    name: str,
+    result: EvalResult,
+    info: dict,
+    extra: dict | None = None,
+    md: str = "",
+    kind: registry.Kind | None = None,
 ) -> dict:
-    """The scores of method ``name`` into ``out``: plots, then per_sample.csv, pixels.npz,
-    summary.json (``info``, the scores, then ``extra``) and summary.md (then ``md``), each
-    written once. Returns the summary."""
-    summary = {**report.summarize(name, result, info), **(extra or {})}
+    """The scores of method ``name`` (of ``kind``: report.summarize) into ``out``: plots, then
+    per_sample.csv, pixels.npz, summary.json (``info``, the scores, then ``extra``) and
+    summary.md (then ``md``), each written once. Returns the summary."""
+    summary = {**report.summarize(name, result, info, kind), **(extra or {})}
     report.write_plots(out, name, result)
     markdown = report.summary_markdown(summary) + md
     runfolder.write_report(out, summary, markdown, result.per_sample, result.pixels)
@@ -95,11 +126,12 @@ def score_checkpoint(
     progress: bool = True,
     extra: dict | None = None,
     split_data: tuple[str, list, PairDataset] | None = None,
+    median_scaling: bool = False,
 ) -> dict:
     """Evaluate a checkpoint on a split and write summary.json/.md, per_sample.csv, plots/
     (``extra`` is added to the summary). The checkpoint, device and data are checked before
     ``out`` is created. ``split_data``: :func:`eval_split`'s answer for this split at the
-    checkpoint's shift, when already read."""
+    checkpoint's shift, when already read; ``median_scaling``: evaluate's."""
     if batch_size < 1:
         raise FieldError("batch_size", f"must be at least 1, got {batch_size}")
     dev = resolve_device(device)
@@ -118,22 +150,112 @@ def score_checkpoint(
     method = Method(
         registry.MODELS[name].kind, model, ck["nominal_displacement"], depth_range=clamp
     )
-    runfolder.make_folder(out)  # after every check, before the evaluation's minutes
-    t0 = time.perf_counter()
-    predictions = runfolder.predictions_dir(out) if save_predictions else None
-    result = evaluate(method, dataset, dev, batch_size, predictions_dir=predictions)
     info = {
-        "dataset": str(data),
-        "split": split,
-        "scenes": len(scenes),
-        "shift": shift,
         "checkpoint": str(ckpt),
         "nominal_displacement": ck["nominal_displacement"],
         "depth_range": list(depth_range),
         "training_state": ck.get("state"),
+    }
+    return score_split(
+        out, name, method, (data, split, scenes, dataset), dev, batch_size, info,
+        save_predictions, median_scaling, extra,
+    )  # fmt: skip
+
+
+def score_split(
+    out: Path,
+    name: str,
+    method: Method,
+    split_data: tuple[Path, str, list[Scene], PairDataset],
+    device,
+    batch_size: int,
+    info: dict,
+    save_predictions: bool = False,
+    median_scaling: bool = False,
+    extra: dict | None = None,
+) -> dict:
+    """Score ``method`` (called ``name``) on the eval pairs of ``split_data`` (dataset folder,
+    split, its scenes, their PairDataset) and write its report into ``out``, created here: after
+    every check, before the evaluation's minutes. ``info`` goes into summary.json after what was
+    scored; :func:`write_scores` does the rest."""
+    data, split, scenes, dataset = split_data
+    runfolder.make_folder(out)
+    t0 = time.perf_counter()
+    predictions = runfolder.predictions_dir(out) if save_predictions else None
+    result = evaluate(
+        method, dataset, device, batch_size, predictions_dir=predictions,
+        median_scaling=median_scaling,
+    )  # fmt: skip
+    info = {
+        "dataset": str(data),
+        "split": split,
+        "scenes": len(scenes),
+        "shift": dataset.shift,
+        **info,
+        "median_scaling": median_scaling,
         "eval_seconds": round(time.perf_counter() - t0, 2),
     }
-    return write_scores(out, name, result, info, extra)
+    return write_scores(out, name, result, info, extra, kind=method.kind)
+
+
+def score_predictions(
+    predictions: Path,
+    data: Path,
+    split: str,
+    out: Path,
+    batch_size: int,
+    median_scaling: bool = False,
+    progress: bool = True,
+) -> dict:
+    """Score another method's depth files (supervised.predictions' layout) on the pairs
+    (i, i + NOMINAL_SHIFT) of a split, as a registered network is scored, and write the same
+    report into ``out``. Every file is checked before ``out`` is created."""
+    if batch_size < 1:
+        raise FieldError("batch_size", f"must be at least 1, got {batch_size}")
+    split, scenes = eval_scenes(data, split, NOMINAL_SHIFT)
+    frames = {s.index: len(s.depth) for s in scenes}
+    needed = [(s.index, f + NOMINAL_SHIFT) for s in scenes for f in eval_firsts(s, NOMINAL_SHIFT)]
+    files = PredictionFiles(predictions, frames, needed, frame_size(scenes))
+    dataset = PairDataset(FrameStore(scenes, progress=progress), "eval", NOMINAL_SHIFT)
+    method = Method(registry.PREDICTIONS, predictions=files)
+    info = {"predictions": str(predictions), "prediction_format": files.ext}
+    return score_split(
+        out, PREDICTIONS_NAME, method, (data, split, scenes, dataset), resolve_device("cpu"),
+        batch_size, info, median_scaling=median_scaling,
+    )  # fmt: skip
+
+
+def score_user_model(
+    spec: str,
+    data: Path,
+    split: str,
+    out: Path,
+    device: str,
+    batch_size: int,
+    displacement: float | None = None,
+    median_scaling: bool = False,
+    save_predictions: bool = False,
+    progress: bool = True,
+) -> dict:
+    """Score the network ``spec`` builds (core.contract: ``module:callable``) on the pairs
+    (i, i + NOMINAL_SHIFT) of a split, as a registered depth network is scored. Its depth is
+    taken to answer for ``displacement`` metres (default: NOMINAL_SHIFT frames of the split's
+    median displacement per frame, what a network trained here answers for). The network and
+    the data are checked before ``out`` is created."""
+    if batch_size < 1:
+        raise FieldError("batch_size", f"must be at least 1, got {batch_size}")
+    if displacement is not None and not (displacement > 0 and math.isfinite(displacement)):
+        raise FieldError("displacement", f"must be a positive number of metres, got {displacement}")
+    dev = resolve_device(device)
+    split, scenes = eval_scenes(data, split, NOMINAL_SHIFT)
+    model = load_user_model(spec, *frame_size(scenes), dev)
+    nominal = displacement or nominal_displacement(scenes, NOMINAL_SHIFT)
+    dataset = PairDataset(FrameStore(scenes, progress=progress), "eval", NOMINAL_SHIFT)
+    info = {"user_model": spec, "nominal_displacement": nominal}
+    return score_split(
+        out, spec, Method(registry.DEPTH, model, nominal), (data, split, scenes, dataset), dev,
+        batch_size, info, save_predictions, median_scaling,
+    )  # fmt: skip
 
 
 def score_baseline(

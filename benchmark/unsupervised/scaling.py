@@ -9,7 +9,7 @@ depth and PoseNet translations in one arbitrary unit; its depth is put in metres
   is the scene's first N frames when i2 < N − 1 (pairs are closer than N frames: training checks
   ``shift < N``). The same rule as depthnet-unsup's "P" (evaluate: × ‖t‖ / d0, where d0 is the
   displacement eq. 5.2 gave PoseNet), with PoseNet's own displacement for d0; no ground truth.
-- "GT" (:func:`median_scale`): per image, the median of the ground truth over the median of the
+- "GT" (core.metrics.median_scale): per image, the median of the ground truth over the median of the
   prediction, both over the pixels that are scored (core.metrics.valid_mask; ground truth
   clipped to MAX_DEPTH as it is scored). Medians interpolate between the two middle values for
   an even count (``torch.quantile``, as numpy.median).
@@ -24,22 +24,9 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from stillbox_gen.conventions import MAX_DEPTH
-
 from ..core import metrics
 from ..core.data import FrameStore
-
-
-def median_scale(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
-    """``(B,)`` float64: per image, median(gt) / median(pred) over ``gt``'s valid pixels
-    (``pred``, ``gt``: ``(B, H, W)``); NaN for an image without one."""
-    valid = metrics.valid_mask(gt)
-    out = torch.full((len(gt),), float("nan"), dtype=torch.float64, device=gt.device)
-    for b in range(len(gt)):
-        if valid[b].any():
-            g = gt[b][valid[b]].double().clamp(max=MAX_DEPTH).quantile(0.5)
-            out[b] = g / pred[b][valid[b]].double().quantile(0.5)
-    return out
+from ..core.metrics import median_scale
 
 
 def window(i2: int, frames: int, length: int) -> int:

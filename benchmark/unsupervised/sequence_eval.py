@@ -13,7 +13,9 @@ to 100 m, per image, then the mean over images).
   rotation (``depthnet-unsup-6dof*``); stabilised scenes are read as they are. The pair kept is
   the one whose mean DepthNet output (finest scale, metres at the nominal displacement d0) is
   closest to :data:`PAIR_TARGET_DEPTH` (§5.4.3), and its output is rescaled by the measured
-  displacement, × ‖t_pair‖ / d0 (the "P" scale). A network with a narrower depth range has its
+  displacement, × ‖t_pair‖ / d0 (the "P" scale). Beside it, "P (fixed pair)": the same with the
+  reference whose measured displacement is closest to d0, so that a reader sees how much of a
+  score is the thesis' rule. A network with a narrower depth range has its
   outputs clamped to it first (registry.output_clamp), as ``eval`` does.
 - SFMLearner (``sfmlearner*``) reads t alone; its scale-free depth is put in metres by
   benchmark.unsupervised.scaling: "P", the measured displacement over PoseNet's between the
@@ -41,7 +43,7 @@ from ..core import metrics, registry
 from ..core.checkpoint import load_checkpoint, load_weights, source_error
 from ..core.errors import FieldError
 from .rotation import Stabiliser
-from .scaling import median_scale, pose_scale
+from .scaling import pose_scale
 
 #: frames of a test window: PoseNet's input length (§5.4.3), the recipe's sequence length
 SEQUENCE_LENGTH = registry.UNSUPERVISED_RECIPE.sequence_length
@@ -50,8 +52,10 @@ SEQUENCE_LENGTH = registry.UNSUPERVISED_RECIPE.sequence_length
 PAIR_TARGET_DEPTH = 50.0
 #: where the rotation stabilising DepthNet's reference comes from
 STABILISE_KNOWN, STABILISE_POSENET, STABILISE_NONE = "known", "posenet", "none"
-#: scale factors: PoseNet's or the measured displacement ("P"), the ground-truth median ("GT")
-SCALE_P, SCALE_GT = "P", "GT"
+#: scale factors: PoseNet's or the measured displacement ("P"), the ground-truth median ("GT");
+#: DepthNet's "P" also with a fixed pair: the reference whose measured displacement is closest
+#: to the network's nominal one, whatever its output (the thesis' rule picks by the output)
+SCALE_P, SCALE_GT, SCALE_P_FIXED = "P", "GT", "P (fixed pair)"
 UPRIGHT, UPSIDE_DOWN = "upright", "upside-down"
 #: the flip of the camera's y axis (OpenCV axes: y down)
 FLIP_Y = np.diag([1.0, -1.0, 1.0])
@@ -111,8 +115,8 @@ def upside_down(w: Window) -> Window:
 
 
 def choose_pair(means: torch.Tensor, target: float = PAIR_TARGET_DEPTH) -> int:
-    """The index of the pair whose mean output (metres) is closest to ``target`` (the first
-    of equally close ones)."""
+    """The index of the pair whose value (metres: its mean output, or its displacement) is
+    closest to ``target`` (the first of equally close ones)."""
     return int((means.double() - target).abs().argmin())
 
 
@@ -147,7 +151,7 @@ class EvalModel:
     def scales(self) -> tuple[str, ...]:
         if self.kind.scored_as is registry.Scoring.SCALE_FREE:
             return (SCALE_P, SCALE_GT)
-        return (SCALE_GT,) if self.net is None else (SCALE_P,)
+        return (SCALE_GT,) if self.net is None else (SCALE_P, SCALE_P_FIXED)
 
 
 def constant_plane() -> EvalModel:
@@ -192,11 +196,12 @@ def _full(depth: torch.Tensor, h: int, w: int) -> torch.Tensor:
 @torch.inference_mode()
 def predict(m: EvalModel, w: Window, device: torch.device) -> dict:
     """The last frame's depth (H, W) metres for each of ``m.scales`` (``{scale: depth}``), and
-    ``shift``: the frames between the chosen reference and t (DepthNet; None otherwise)."""
+    ``shifts``: ``{scale: frames between the reference used and t}`` (DepthNet's; empty
+    otherwise)."""
     gt = torch.from_numpy(np.ascontiguousarray(w.depth)).to(device)
     if m.net is None:  # the constant plane, at the ground truth's median
-        median = median_scale(torch.ones_like(gt)[None], gt[None])[0]
-        return {SCALE_GT: torch.full_like(gt, float(median)), "shift": None}
+        median = metrics.median_scale(torch.ones_like(gt)[None], gt[None])[0]
+        return {SCALE_GT: torch.full_like(gt, float(median)), "shifts": {}}
     seq = _normalised(w.frames, device)  # (N, 3, H, W)
     if m.kind.scored_as is registry.Scoring.SCALE_FREE:
         return _scale_free(m, w, seq, gt)
@@ -211,13 +216,14 @@ def _scale_free(m: EvalModel, w: Window, seq: torch.Tensor, gt: torch.Tensor) ->
     poses = m.net.pose(seq.reshape(1, 3 * n, h, wd)).float()
     first = torch.from_numpy(w.position[0]).float().to(seq.device)[None]  # metres from t
     p = pose_scale(poses, torch.tensor([[0, n - 1]], device=seq.device), first)
-    g = median_scale(raw, gt[None]).to(raw.dtype)
-    return {SCALE_P: raw[0] * p[0], SCALE_GT: raw[0] * g[0], "shift": None}
+    g = metrics.median_scale(raw, gt[None]).to(raw.dtype)
+    return {SCALE_P: raw[0] * p[0], SCALE_GT: raw[0] * g[0], "shifts": {}}
 
 
 def _depthnet(m: EvalModel, w: Window, seq: torch.Tensor) -> dict:
     """DepthNet's depth of the last frame from the pair (r, t) whose mean output is closest to
-    PAIR_TARGET_DEPTH, each reference stabilised first (:attr:`EvalModel.stabilise`), × ‖t_r‖/d0."""
+    PAIR_TARGET_DEPTH (SCALE_P) and from the pair whose measured displacement is closest to d0
+    (SCALE_P_FIXED), each reference stabilised first (:attr:`EvalModel.stabilise`), × ‖t_r‖/d0."""
     n, _, h, wd = seq.shape
     refs = torch.arange(n - 1, device=seq.device)
     pairs = torch.cat([seq[:-1], seq[-1:].expand(n - 1, -1, -1, -1)], 1)  # (N − 1, 6, H, W)
@@ -234,9 +240,14 @@ def _depthnet(m: EvalModel, w: Window, seq: torch.Tensor) -> dict:
     raw = m.net(pairs)[0].float()  # (N − 1, 1, h, w), metres at d0
     if m.clamp is not None:
         raw = raw.clamp(*m.clamp)
-    k = choose_pair(raw.mean((1, 2, 3)))
-    moved = float(np.linalg.norm(w.position[k]))
-    return {SCALE_P: _full(raw[k : k + 1] * (moved / m.d0), h, wd), "shift": n - 1 - k}
+    moved = np.linalg.norm(w.position[: n - 1], axis=1)  # metres from each reference to t
+    chosen = {
+        SCALE_P: choose_pair(raw.mean((1, 2, 3))),
+        SCALE_P_FIXED: choose_pair(torch.from_numpy(moved), m.d0),
+    }
+    out: dict = {s: _full(raw[k : k + 1] * (moved[k] / m.d0), h, wd) for s, k in chosen.items()}
+    out["shifts"] = {s: n - 1 - k for s, k in chosen.items()}
+    return out
 
 
 @dataclass
@@ -314,8 +325,8 @@ def evaluate(
                     out = predict(m, w, device)
                     for s in m.scales:
                         tallies[o, i, s].add(out[s], gt)
-                    if out["shift"] is not None:
-                        tallies[o, i, m.scales[0]].shifts[out["shift"]] += 1
+                    for s, shift in out["shifts"].items():
+                        tallies[o, i, s].shifts[shift] += 1
     rows = []
     for (o, i, s), tally in tallies.items():
         m = models[i]

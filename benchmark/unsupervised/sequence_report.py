@@ -42,7 +42,7 @@ METHOD_NAMES = {
 class ThesisRow:
     """One row of thesis Table 5.2 (StillBox, no pretraining) or 5.3 (upside-down KITTI, no
     training on it): ``occlusion`` None where the table has no such column; ``values`` in
-    core.metrics.METRICS' order (MAE, MRE, MLE, SAE, SLE, P1.25, P1.25², P1.25³)."""
+    core.metrics.THESIS_METRICS' order (MAE, MRE, MLE, SAE, SLE, P1.25, P1.25², P1.25³)."""
 
     table: str
     method: str
@@ -90,7 +90,8 @@ HEADINGS = {
     "beside: upside-down KITTI, networks trained on KITTI or StillBox → KITTI, so only "
     "indicative)",
 }
-SHOWN = ("MAE", "MRE", "MLE", "SAE", "SLE", "P1.25", "P1.25²", "P1.25³")  # METRICS' order
+#: the columns of Tables 5.2-5.3 (results.csv also has the field's metrics)
+SHOWN = tuple(metrics.header(k) for k in metrics.THESIS_METRICS)
 
 
 def method(row: dict) -> str:
@@ -143,7 +144,9 @@ def markdown(rows: list[dict], info: dict) -> str:
         f"{info['split']} split: {scenes}, {rows[0]['sequences']} sequences "
         f"({'rotating' if info['rotating'] else 'stabilised'} camera). Depth of each sequence's "
         f"last frame; DepthNet's pair: mean output closest to {info['pair_target_depth_m']:g} m, "
-        "scaled by the measured displacement (P). " + info["averaging_rule"],
+        "scaled by the measured displacement (P); P (fixed pair): the reference whose measured "
+        "displacement is closest to the network's nominal one, the same scaling. "
+        + info["averaging_rule"],
     ]
     head = "| method | model | training set | scale factor | supervision | occlusion | "
     for o in info["orientations"]:
@@ -151,10 +154,10 @@ def markdown(rows: list[dict], info: dict) -> str:
         lines.append(head + " | ".join(SHOWN) + " | pair chosen (frames apart: count) |")
         lines.append("|" + "---|" * (6 + len(SHOWN) + 1))
         for r in (r for r in rows if r["orientation"] == o):
+            scores = _cells(r[k] for k in metrics.THESIS_METRICS)
             lines.append(
                 f"| {method(r)} | {r['model']} | {r['training_set']} | {r['scale']} | "
-                f"{supervision(r)} | {occlusion(r)} | {_cells(r[k] for k in metrics.METRICS)} | "
-                f"{r['shifts_used']} |"
+                f"{supervision(r)} | {occlusion(r)} | {scores} | {r['shifts_used']} |"
             )
             t = thesis_row(r)
             if t is not None:
@@ -174,7 +177,7 @@ def with_thesis(row: dict) -> dict:
     out = {"orientation": row["orientation"], "method": method(row), "model": row["model"]}
     out.update((k, v) for k, v in row.items() if k not in first)
     out.update(supervision=supervision(row), thesis_table=t.table if t else None)
-    for k, name in enumerate(metrics.METRICS):
+    for k, name in enumerate(metrics.THESIS_METRICS):
         out[f"thesis_{name}"] = t.values[k] if t else None
     return out
 
