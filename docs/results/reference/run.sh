@@ -10,7 +10,7 @@ set -euo pipefail
 CODE=$1 PY=$2 SEED=$3 LAST=$4 RUNS=${5:-runs/reference}
 D=${DATA:-data/stillbox-64-jpg} B=.venv/bin/stillbox-bench
 EPOCH_SIZE=${EPOCH_SIZE:-171} BATCH=32
-KEEP=(6 12 19 30 44 55)
+read -ra KEEP <<< "${KEEP:-6 12 18 19 29 43 55}"
 keep=() ; for e in "${KEEP[@]}"; do ((e <= LAST)) && keep+=("$e"); done
 
 author() {
