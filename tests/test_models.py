@@ -135,7 +135,8 @@ def test_kinds_say_how_a_method_trains_and_is_scored():
     """The registry's kinds: which train, on what target, and which metric picks best.pt."""
     kinds = {spec.name: spec.kind for spec in MODELS.values()}
     assert {k.name for k in KINDS} == {
-        *("depth", "flow", "unsupervised-depth", "scale-free-depth", "oracle-flow", "constant")
+        *("depth", "flow", "unsupervised-depth", "scale-free-depth", "oracle-flow", "constant"),
+        "given-depth",  # eval --predictions: another method's files, no network
     }
     assert kinds["depthnet-unsup"].target is Target.VIDEO and kinds["depthnet-unsup"].trains
     assert kinds["depthnet-unsup"].scored_as is kinds["depthnet"].scored_as
