@@ -31,7 +31,7 @@ from ..core.runfolder import prediction_name
 
 PNG_SCALE = 256.0  # PNG units per metre (KITTI depth maps)
 EXTENSIONS = ("npy", "png")
-_NAME = re.compile(r"(\d+)/depth_(\d{4})_(\d{2})\.(npy|png)")
+_NAME = re.compile(r"(\d+)/depth_(\d{4})_(\d{2})\.(" + "|".join(EXTENSIONS) + ")")
 
 
 def read_prediction(path: Path) -> np.ndarray:
