@@ -22,6 +22,7 @@ import numpy as np
 
 from . import camera
 from .arguments import parse_point, parse_resolution, parse_shares
+from .conventions import LIMITS
 from .errors import ConfigError
 
 PRIMITIVE_KINDS = ("cube", "sphere", "cone", "torus", "cylinder", "slab")  # objects.kinds default
@@ -39,23 +40,6 @@ PATTERNS = ("noise", "voronoi", "wave", "magic", "checker", "brick", "gradient_s
 # The last three have hard edges that alias at 1 sample (at 128 px, 1 sample + denoiser vs 256
 # samples: checker/brick/stripes 19-28 dB, noise/Voronoi 29-34 dB), so they are opt-in.
 SMOOTH_PATTERNS = PATTERNS[:4]
-
-
-# Upper bounds of every size and count a user sets, by config key ("section.name") or run option
-# (generate's --scenes, --workers, --threads): ConfigError beyond them, before anything is
-# written. Each is far above any real use yet below what exhausts memory or what Blender refuses
-# late, in the workers (Cycles takes at most 1024 bounces).
-LIMITS: dict[str, tuple[int, str]] = {  # key: (largest value, unit)
-    "camera.width": (8192, "pixels"),  # 8K frames: a 256 MB float32 depth map per frame
-    "camera.height": (8192, "pixels"),
-    "camera.frames": (10_000, "frames per scene"),  # StillBox: 10
-    "objects.count": (1000, "objects"),  # StillBox: 20; 1000 samples a layout in about 2 s
-    "render.samples": (4096, "samples per pixel"),  # anti-aliasing only: 16 is --quality high
-    "render.max_bounces": (1024, "bounces"),  # Cycles' own maximum
-    "scenes": (10_000_000, "scenes"),  # 125 times StillBox's 80,000
-    "workers": (256, "workers"),  # about 500 MB of memory each
-    "threads": (1024, "threads"),  # more than any CPU has
-}
 
 
 def limit_problem(key: str, value: int) -> str | None:
