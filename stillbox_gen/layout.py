@@ -29,6 +29,15 @@ STATS_FILES = ("stats.json", "stats.png")  # what ``stillbox-gen stats`` may add
 LOCK_FILE = ".stillbox.lock"
 
 
+def enclosing_dataset(path: Path) -> Path | None:
+    """The dataset folder (one holding DATASET_JSON) that ``path`` is or lies inside, after
+    resolving links; None when there is none. Commands refuse to write there."""
+    for folder in (path.resolve(), *path.resolve().parents):
+        if (folder / DATASET_JSON).is_file():
+            return folder
+    return None
+
+
 def chunk_name(index: int) -> str:
     """Folder name of the chunk holding scene ``index`` (global index, from 0)."""
     return str(index // CHUNK_SIZE)

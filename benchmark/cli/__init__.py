@@ -17,7 +17,7 @@ if importlib.util.find_spec("torch") is None:  # installed without the `bench` e
 
 import click  # noqa: E402 - after the check, which must run before torch is imported below
 
-from . import flight, supervised, unsupervised, video  # noqa: E402
+from . import export, flight, supervised, unsupervised, video  # noqa: E402
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
@@ -38,6 +38,7 @@ def cli() -> None:
     stillbox-bench eval-sequences --ckpt C --data D --out R  thesis 5.4.3: Tables 5.2/5.3
     stillbox-bench fly --depth oracle --out runs/fly-oracle  thesis 6.5: closed-loop flight
     stillbox-bench fly-compare runs/fly-*                    one table of fly runs
+    stillbox-bench export --ckpt C --out depthnet.onnx       a network for use elsewhere
     stillbox-bench list                                      registered models
     """
 
@@ -49,6 +50,7 @@ for command in (
     supervised.report,
     supervised.compare,
     supervised.speed,
+    export.export_cmd,
     video.infer,
     video.eval_multishift,
     unsupervised.toy_cmd,

@@ -112,9 +112,14 @@ class FrameStore:
         return self._checked(self.scenes[k].load_depth(f), self.scenes[k].depth[f])
 
 
+#: the networks' input normalisation of 8-bit colour x, (x / 255 - NORM_MEAN) / NORM_STD, as the
+#: original DepthNet code (core.contract)
+NORM_MEAN, NORM_STD = 0.5, 0.2
+
+
 def normalise(img: np.ndarray) -> np.ndarray:
-    """(H, W, 3) uint8 -> (3, H, W) float32, (x/255 - 0.5)/0.2."""
-    return ((img.astype(np.float32) / 255.0 - 0.5) / 0.2).transpose(2, 0, 1)
+    """(H, W, 3) uint8 -> (3, H, W) float32, (x/255 - NORM_MEAN)/NORM_STD."""
+    return ((img.astype(np.float32) / 255.0 - NORM_MEAN) / NORM_STD).transpose(2, 0, 1)
 
 
 def eval_firsts(scene: Scene, shift: int) -> range:

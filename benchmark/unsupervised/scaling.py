@@ -25,7 +25,7 @@ import torch
 import torch.nn.functional as F
 
 from ..core import metrics
-from ..core.data import FrameStore
+from ..core.data import NORM_MEAN, NORM_STD, FrameStore
 from ..core.metrics import median_scale
 
 
@@ -51,7 +51,7 @@ def pose_windows(store: FrameStore, batch: dict, length: int) -> tuple[torch.Ten
         where[j] = torch.tensor([i1 - first, i2 - first])
     if not ((where >= 0) & (where < length)).all():
         raise ValueError(f"pose_windows: pairs more than {length - 1} frames apart")
-    sequence = (torch.from_numpy(raw).float() / 255.0 - 0.5) / 0.2
+    sequence = (torch.from_numpy(raw).float() / 255.0 - NORM_MEAN) / NORM_STD
     return sequence.reshape(len(raw), 3 * length, h, w), where
 
 

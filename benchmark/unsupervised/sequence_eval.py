@@ -41,6 +41,7 @@ from stillbox_gen.dataset import Dataset, Scene
 
 from ..core import metrics, registry
 from ..core.checkpoint import load_checkpoint, load_weights, source_error
+from ..core.data import NORM_MEAN, NORM_STD
 from ..core.errors import FieldError
 from .rotation import Stabiliser
 from .scaling import pose_scale
@@ -185,7 +186,7 @@ def load_model(path: Path, field: str = "ckpt") -> EvalModel:
 def _normalised(frames: np.ndarray, device: torch.device) -> torch.Tensor:
     """(N, H, W, 3) uint8 -> (N, 3, H, W) float32, DepthNet's (x/255 − 0.5)/0.2."""
     x = torch.from_numpy(np.ascontiguousarray(frames)).permute(0, 3, 1, 2).float()
-    return ((x / 255.0 - 0.5) / 0.2).to(device)
+    return ((x / 255.0 - NORM_MEAN) / NORM_STD).to(device)
 
 
 def _full(depth: torch.Tensor, h: int, w: int) -> torch.Tensor:

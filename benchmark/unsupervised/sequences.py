@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from ..core.data import FrameStore
+from ..core.data import NORM_MEAN, NORM_STD, FrameStore
 
 
 class SequenceDataset:
@@ -77,7 +77,7 @@ class SequenceDataset:
                     translation[j, f] = -pose[:3, :3].T @ pose[:3, 3]
             K[j] = scene.K
         frames = torch.from_numpy(raw).float() / 255.0
-        sequence = (frames - 0.5) / 0.2
+        sequence = (frames - NORM_MEAN) / NORM_STD
         tgt = torch.tensor([d[2] for d in draws])
         ref = torch.tensor([d[3] for d in draws])
         rows = torch.arange(n)

@@ -37,6 +37,7 @@ from ..core.data import normalise
 from ..core.errors import FieldError, Ref
 from ..core.metrics import upsample_to
 from . import footage
+from .export import onnx_depth_network
 from .multishift import (
     BETA_MAX,
     BETA_MEAN,
@@ -213,13 +214,18 @@ def prepare(o: InferOptions, out: bool = True) -> Job:
     from ..core.device import resolve_device
 
     check_options(o, out)
-    device = resolve_device(o.device)
+    exported = o.ckpt.suffix == ".onnx"  # an ONNX file of `stillbox-bench export` runs on the CPU
+    device = resolve_device("cpu" if exported else o.device)
     camera = None
     if o.train_fov is not None:
         camera = {"width": o.res[0], "height": o.res[1], "fov_deg": o.train_fov}
     if not o.ckpt.is_file():
         raise FieldError("ckpt", f"no such file '{o.ckpt}'")
-    model, scale, info = depth_network(o.ckpt, "ckpt", camera)
+    load = onnx_depth_network if exported else depth_network
+    model, scale, info = load(o.ckpt, "ckpt", camera)
+    fixed = (info["width"], info["height"])
+    if exported and o.res is not None and tuple(o.res) != fixed:
+        raise FieldError("res", f"the ONNX file {o.ckpt} takes {fixed[0]}x{fixed[1]} frames only")
     source = footage.FrameSource(o.input)
     _check_fixed_shift(o, source.count)
     positions, fps = _motion(o, source)
