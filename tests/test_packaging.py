@@ -87,3 +87,17 @@ def test_the_benchmark_without_torch_is_a_one_line_error():
     assert proc.stderr.splitlines() == [
         "stillbox-bench: error: the benchmark needs PyTorch: pip install 'stillbox-gen[bench]'"
     ]
+
+
+def test_license_and_citation_agree_with_the_package_metadata():
+    """LICENSE holds the licence pyproject.toml declares; CITATION.cff names the same version and
+    licence, and cites the thesis."""
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    assert project["license"] == "MIT"
+    assert (ROOT / "LICENSE").read_text().startswith("MIT License\n")
+    cff = (ROOT / "CITATION.cff").read_text()
+    fields = dict(re.findall(r"^([a-z-]+): *(.+)$", cff, re.MULTILINE))
+    assert fields["cff-version"] == "1.2.0"
+    assert fields["version"] == project["version"]
+    assert fields["license"] == project["license"]
+    assert "type: thesis" in cff and "family-names: Pinard" in cff
