@@ -402,19 +402,23 @@ def test_flags_with_several_fields_set_them_all_and_name_them_in_errors():
 
 
 def test_resolution_parser_and_out_folder_check_are_shared_by_both_clis(tmp_path):
-    """arguments.parse_resolution is --res of stillbox-gen and of stillbox-bench infer (whose
-    multiple-of-64 rule is checked on top); check_out_folder raises each CLI's own error."""
+    """arguments.parse_resolution is --res of stillbox-gen and of stillbox-bench (its click
+    type, whose bounds and infer's multiple-of-64 rule are checked on top); check_out_folder
+    raises each CLI's own error."""
+    import click
+
     from benchmark.cli import options as bench_options
-    from benchmark.cli import video as bench_video
+    from benchmark.cli.limits import RESOLUTION
     from stillbox_gen import arguments
 
     assert arguments.parse_resolution("64") == (64, 64)
     assert arguments.parse_resolution(" 128X64 ") == (128, 64)
+    assert RESOLUTION.convert(" 128X64 ", None, None) == (128, 64)
     for bad, words in (("64x", "expected N or WxH"), ("0x64", "width and height must be positive")):
         with pytest.raises(ConfigError, match=f"^--res: {words}"):
             arguments.parse_resolution(bad)
-        with pytest.raises(bench_options.UserError, match=f"^--res: {words}"):
-            bench_video.size_option(bad)
+        with pytest.raises(click.BadParameter, match=f"^{words}"):
+            RESOLUTION.convert(bad, None, None)
     file = tmp_path / "f"
     file.write_text("")
     arguments.check_out_folder(tmp_path)  # a folder, or a missing path, is fine

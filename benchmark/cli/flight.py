@@ -12,13 +12,13 @@ from pathlib import Path
 
 import click
 
-from stillbox_gen.arguments import check_out_folder, parse_resolution
+from stillbox_gen.arguments import check_out_folder
 from stillbox_gen.errors import ConfigError
 
 from ..core import registry, runfolder
 from ..core.errors import FieldError
 from ..flight.choices import MAX_STEPS, RENDERERS, YAW_MODES
-from ..video.multishift import MAX_SHIFTS
+from .limits import FLOAT, RESOLUTION
 from .options import (
     DATA_OPTION,
     DEVICE_OPTION,
@@ -57,13 +57,6 @@ def _check_out(out: Path, resume: bool) -> dict | None:
     return config
 
 
-def _resolution(res: str) -> tuple[int, int]:
-    try:
-        return parse_resolution(res)
-    except ConfigError as e:
-        raise UserError(str(e)) from None
-
-
 def _checkpoint_kind(path: Path) -> registry.Kind:
     from ..core.checkpoint import load_checkpoint
 
@@ -77,9 +70,7 @@ def _checkpoint_kind(path: Path) -> registry.Kind:
 def _constant_depth(value: float | None, data: Path) -> tuple[float, str]:
     """--constant-depth, else the median depth of --data's training split (as compare's
     ``constant``); (metres, how it was obtained)."""
-    if value is not None:
-        if not value > 0:
-            raise UserError(f"--constant-depth: must be a positive number of metres, got {value}")
+    if value is not None:  # within limits.LIMITS
         return value, "given with --constant-depth"
     from ..core.data import load_scenes
     from ..supervised.runner import median_depth
@@ -149,7 +140,13 @@ def _source(o: dict, res: tuple[int, int], device) -> tuple[object, dict]:
 )
 @int_option("--episodes", 20, "Episodes to fly (0 .. N-1 of --seed: the same for every source).")
 @int_option("--seed", 0, "Seed of the episodes (scenes, starts and goals).")
-@click.option("--res", default="64", show_default=True, help="Camera frames, N or WxH pixels.")
+@click.option(
+    "--res",
+    type=RESOLUTION,
+    default="64",
+    show_default=True,
+    help="Camera frames, N or WxH pixels.",
+)
 @click.option(
     "--renderer",
     type=click.Choice(RENDERERS),
@@ -161,7 +158,7 @@ def _source(o: dict, res: tuple[int, int], device) -> tuple[object, dict]:
 @int_option("--shifts", 1, "A depth network's frame pairs per frame (infer --shifts, 1..4).")
 @click.option(
     "--constant-depth",
-    type=float,
+    type=FLOAT,
     help="Depth (m) of --depth constant.  [default: the median depth of --data's training split]",
 )
 @DATA_OPTION
@@ -188,7 +185,7 @@ def fly_cmd(**o) -> None:
 
     out: Path = o["out"]
     earlier = _check_out(out, o["resume"])
-    res = _resolution(o["res"])
+    res: tuple[int, int] = o["res"]
     _check_numbers(o)
     settings = training_settings({"device": o["device"], "threads": o["threads"]})
     _check_renderer(o["renderer"])
@@ -210,12 +207,7 @@ def fly_cmd(**o) -> None:
 
 
 def _check_numbers(o: dict) -> None:
-    """--episodes, --max-steps, --shifts and --constant-depth against --depth."""
-    for flag in ("episodes", "max_steps"):
-        if o[flag] < 1:
-            raise UserError(f"--{flag.replace('_', '-')}: must be at least 1, got {o[flag]}")
-    if not 1 <= o["shifts"] <= MAX_SHIFTS:
-        raise UserError(f"--shifts: must be in 1..{MAX_SHIFTS}, got {o['shifts']}")
+    """--shifts and --constant-depth against --depth (their ranges: limits.LIMITS)."""
     if o["depth"] in BUILT_IN and not is_default("shifts"):
         raise UserError("--shifts: only for a depth network's checkpoint (--depth PATH)")
     if o["constant_depth"] is not None and o["depth"] != "constant":

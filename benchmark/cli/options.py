@@ -14,6 +14,7 @@ from ..core import registry
 from ..core.config import FLAGGED, check_settings
 from ..core.errors import FieldError
 from ..core.registry import CLAMPED_RECIPE, DEPTH_RECIPE
+from .limits import FLOAT, INT
 
 if TYPE_CHECKING:
     import torch
@@ -74,7 +75,7 @@ def model_names(value: str) -> list[str]:
 
 def int_option(flag: str, value: int, text: str):
     """An integer option with a default shown in --help."""
-    return click.option(flag, type=int, default=value, show_default=True, help=text)
+    return click.option(flag, type=INT, default=value, show_default=True, help=text)
 
 
 DATA_OPTION = click.option(
@@ -87,7 +88,7 @@ DATA_OPTION = click.option(
 # ---------------------------------------------------------------- TrainConfig's settings
 
 _FIELDS = {f.name: f for f in FLAGGED}
-_TYPES = {"int": int, "float": float, "text": str}
+_TYPES = {"int": INT, "float": FLOAT, "text": str}  # numbers within limits.LIMITS
 
 
 def _shown(value) -> str:

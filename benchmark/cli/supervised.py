@@ -21,6 +21,7 @@ from ..core.runfolder import (
     has_summary,
 )
 from ..supervised import speed as speed_table
+from .limits import FLOAT
 from .options import (
     DATA_OPTION,
     DEVICE_OPTION,
@@ -169,7 +170,7 @@ def _run_one(model: str, data: Path, out: Path, settings: dict) -> dict | None:
 )
 @click.option(
     "--displacement",
-    type=float,
+    type=FLOAT,
     help="--model: metres of camera motion its depth answers for.  [default: 3 frames of the "
     "split's median motion per frame, what a network trained here answers for]",
 )
@@ -419,9 +420,7 @@ def speed(
     if no_net:
         raise UserError(f"--models: {', '.join(no_net)} ha(s) no network to time")
     sizes = _int_list("--resolutions", resolutions)
-    _int_list("--time-res", str(time_res))
-    if warmup < 0 or repeats < 1:
-        raise UserError("--warmup must be >= 0 and --repeats >= 1")
+    _int_list("--time-res", str(time_res))  # multiples of 64; the ranges: limits.LIMITS
     check_out_folder(out, error=UserError)
     dev = torch_device(device)
     if threads > 0:
@@ -461,8 +460,6 @@ def _train_speed(names, batches, data, baseline, compile_, time_res, device, thr
         for k in ("warmup", "repeats")
         if ctx.get_parameter_source(k) is not click.core.ParameterSource.DEFAULT
     }
-    if given.get("warmup", 0) < 0 or given.get("repeats", 1) < 1:
-        raise UserError("--warmup must be >= 0 and --repeats >= 1")
     if data is not None and not data.is_dir():
         raise UserError(f"--data: '{data}' is not a dataset folder")
     check_out_folder(out, error=UserError)

@@ -31,6 +31,7 @@ from ..unsupervised import toy_jobs, toy_plots, toy_runs
 from ..unsupervised.reprojection import SMOOTH_LOSSES
 from ..unsupervised.sequence_eval import PAIR_TARGET_DEPTH, SEQUENCE_LENGTH
 from ..unsupervised.training import smooth_settings
+from .limits import FLOAT, INT
 from .options import (
     DEVICE_OPTION,
     UserError,
@@ -39,7 +40,7 @@ from .options import (
     torch_device,
     user_error,
 )
-from .video import footage_options, size_option
+from .video import footage_options
 
 RESULTS_JSON = "results.json"
 TABLE_MD = "table.md"
@@ -83,11 +84,6 @@ def _losses_option(text: str | None) -> tuple[str, ...] | None:
         known = ", ".join(SMOOTH_LOSSES)
         raise UserError(f"--losses: unknown loss '{','.join(unknown)}' (known: {known})")
     return names
-
-
-def _positive(flag: str, value: int | None) -> None:
-    if value is not None and value < 1:
-        raise UserError(f"{flag}: must be at least 1, got {value}")
 
 
 def write_outputs(
@@ -158,13 +154,13 @@ def _summary(results: dict, seconds: float) -> str:
 )
 @click.option(
     "--iterations",
-    type=int,
+    type=INT,
     help=f"Adam steps of every optimisation.  [default: {study.ITERATIONS}; "
     f"--quick: {study.QUICK_ITERATIONS}]",
 )
 @click.option(
     "--odm-every",
-    type=int,
+    type=INT,
     help=f"Iterations between two computations of the occlusion mask.  [default: "
     f"{study.ODM_EVERY}; --quick: {study.QUICK_ODM_EVERY}]",
 )
@@ -190,7 +186,7 @@ def _summary(results: dict, seconds: float) -> str:
 @DEVICE_OPTION
 @click.option(
     "--threads",
-    type=int,
+    type=INT,
     default=1,
     show_default=True,
     help="Threads of the optimiser's kernels (the results do not depend on it) and of torch. 1 "
@@ -205,7 +201,7 @@ def _summary(results: dict, seconds: float) -> str:
 )
 @click.option(
     "--jobs",
-    type=int,
+    type=INT,
     default=1,
     show_default=True,
     help="Worker processes running the study's runs side by side, one thread each, costliest "
@@ -245,11 +241,7 @@ def toy_cmd(
 
     from ..unsupervised import toy_kernels
 
-    check_out_folder(out, error=UserError)
-    _positive("--iterations", iterations)
-    _positive("--odm-every", odm_every)
-    _positive("--threads", threads)
-    _positive("--jobs", jobs)
+    check_out_folder(out, error=UserError)  # the numbers' ranges: limits.LIMITS
     if jobs > 1 and threads > 1:
         raise UserError(f"--jobs: its workers run one thread each; drop --threads {threads}")
     dev = torch_device(device)
@@ -371,18 +363,18 @@ def _load_or_start(
 @int_option("--steps", finetune_lib.STEPS, "Optimiser steps in all (the warm-up's included).")
 @click.option(
     "--pose-warmup",
-    type=int,
+    type=INT,
     help="First steps with the DepthNet frozen, PoseNet alone learning (a random PoseNet's "
     f"wrong poses would push the depth the wrong way).  [default: {finetune_lib.POSE_WARMUP}]",
 )
 @click.option(
     "--lr",
-    type=float,
+    type=FLOAT,
     help=f"Adam's learning rate.  [default: {UNSUPERVISED_RECIPE.lr:g}, the unsupervised recipe's]",
 )
 @click.option(
     "--batch-size",
-    type=int,
+    type=INT,
     help=f"Sequences per step.  [default: {UNSUPERVISED_RECIPE.batch_size}]",
 )
 @click.option(
@@ -393,7 +385,7 @@ def _load_or_start(
 )
 @click.option(
     "--smooth-weight",
-    type=float,
+    type=FLOAT,
     help="λ of the smooth loss (eq. 5.5; 0: photometric loss alone; depthnet-unsup trains with "
     f"{smooth_settings(None, None, False)[0]:g}).  [default: {finetune_lib.SMOOTH_WEIGHT:g}]",
 )
@@ -405,20 +397,22 @@ def _load_or_start(
     "PoseNet's translations: only the DepthNet learns.  [default: off; the pose warm-up is 0 "
     "with it]",
 )
-@click.option("--seed", type=int, help="Seed of PoseNet's initialisation and the sampling.  "
+@click.option("--seed", type=INT, help="Seed of PoseNet's initialisation and the sampling.  "
               "[default: 0]")  # fmt: skip
 @click.option(
     "--resume",
     is_flag=True,
     help="Continue the fine-tuning in --out from checkpoints/last.pt (its options are kept).",
 )
-@click.option("--threads", type=int, default=0, show_default=True,
+@click.option("--threads", type=INT, default=0, show_default=True,
               help="Torch CPU threads (0 = torch default).")  # fmt: skip
 @DEVICE_OPTION
 @int_option("--ckpt-every", default("ckpt_every"), "Steps between checkpoints.")
 @int_option("--log-every", default("log_every"), "Steps between steps.csv rows.")
 @click.option("--quiet", is_flag=True, help="No progress bars.")
-def finetune_cmd(input_: Path | None, res: str | None, out: Path, resume: bool, **o) -> None:
+def finetune_cmd(
+    input_: Path | None, res: tuple[int, int] | None, out: Path, resume: bool, **o
+) -> None:
     """Fine-tune a depth network on your own stabilised footage, without depth (thesis 5.4.5).
 
     The network learns from sequences of 5 frames with the photometric loss of chapter 5 and a
@@ -434,7 +428,7 @@ def finetune_cmd(input_: Path | None, res: str | None, out: Path, resume: bool, 
                         "checkpoints/last.pt)")  # fmt: skip
     if not resume and last.exists():
         raise UserError(f"--out: '{out}' already holds a run; add --resume or choose another --out")
-    opts = FinetuneOptions(out=out, input=input_, res=size_option(res), resume=resume, **o)
+    opts = FinetuneOptions(out=out, input=input_, res=res, resume=resume, **o)
     try:
         summary = finetune(opts)
     except ValueError as e:
@@ -479,7 +473,7 @@ def finetune_cmd(input_: Path | None, res: str | None, out: Path, resume: bool, 
     is_flag=True,
     help="Also score every model on the same frames turned upside down (thesis Table 5.3).",
 )
-@click.option("--scenes", type=int, help="Score only the split's first N scenes.")
+@click.option("--scenes", type=INT, help="Score only the split's first N scenes.")
 @click.option("--out", type=click.Path(path_type=Path), required=True, help="Results folder.")
 @DEVICE_OPTION
 @click.option("--quiet", is_flag=True, help="No progress bar.")

@@ -7,16 +7,16 @@ from pathlib import Path
 
 import click
 
-from stillbox_gen.arguments import check_out_folder, parse_resolution
+from stillbox_gen.arguments import check_out_folder
 from stillbox_gen.conventions import MAX_DEPTH
-from stillbox_gen.errors import ConfigError
 
 from ..video.multishift import BETA_MEAN, EMA_LAMBDA, MULTISHIFT_MAX_SHIFT
+from .limits import FLOAT, INT, RESOLUTION
 from .options import DEVICE_OPTION, UserError, dataset_dir, int_option, torch_device, user_error
 
 BETA_MEAN_OPTION = click.option(
     "--beta-mean",
-    type=float,
+    type=FLOAT,
     default=BETA_MEAN,
     show_default=True,
     help="The β = output/θ_max the shifts aim at and the fusion favours (thesis 6.2-6.3).",
@@ -26,25 +26,29 @@ BETA_MEAN_OPTION = click.option(
 #: the options of the footage, its motion and its camera, shared by infer and finetune (in
 #: this order): --speed, --poses, --fps, --fov, --focal, --res, --train-fov
 FOOTAGE_OPTIONS = (
-    click.option("--speed", type=float, help="Constant camera speed, m/s (or --poses)."),
+    click.option("--speed", type=FLOAT, help="Constant camera speed, m/s (or --poses)."),
     click.option(
         "--poses",
         type=click.Path(path_type=Path),
         help="CSV, one row per frame: x,y,z (m) or vx,vy,vz (m/s), optional t (s).",
     ),
-    click.option("--fps", type=float, help="Frames per second.  [default: the video's]"),
+    click.option("--fps", type=FLOAT, help="Frames per second.  [default: the video's]"),
     click.option(
         "--fov",
-        type=float,
+        type=FLOAT,
         help="Horizontal field of view of the video, degrees.  [default: the training camera's]",
     ),  # fmt: skip
     click.option(
-        "--focal", type=float, help="Focal length of the video, pixels (instead of --fov)."
+        "--focal", type=FLOAT, help="Focal length of the video, pixels (instead of --fov)."
     ),
-    click.option("--res", help="Network input WxH, multiples of 64.  [default: the training size]"),
+    click.option(
+        "--res",
+        type=RESOLUTION,
+        help="Network input WxH, multiples of 64.  [default: the training size]",
+    ),
     click.option(
         "--train-fov",
-        type=float,
+        type=FLOAT,
         help="Horizontal FOV (degrees) of the training camera, for checkpoints that record none; "
         "needs --res.",
     ),
@@ -52,20 +56,10 @@ FOOTAGE_OPTIONS = (
 
 
 def footage_options(function):
-    """Decorate a command with FOOTAGE_OPTIONS (``--res`` comes as text: :func:`size_option`)."""
+    """Decorate a command with FOOTAGE_OPTIONS (``--res`` comes as (W, H) pixels or None)."""
     for option in reversed(FOOTAGE_OPTIONS):
         function = option(function)
     return function
-
-
-def size_option(value: str | None) -> tuple[int, int] | None:
-    """--res "WxH" or "N" -> (W, H) pixels (UserError naming --res)."""
-    if value is None:
-        return None
-    try:
-        return parse_resolution(value)
-    except ConfigError as e:
-        raise UserError(str(e)) from None
 
 
 @click.command()
@@ -90,16 +84,16 @@ def size_option(value: str | None) -> tuple[int, int] | None:
 )
 @footage_options
 @int_option("--shifts", 1, "Frame pairs per frame: depth clusters of thesis 6.3 (1..4).")
-@click.option("--fixed-shift", type=int, help="Always this frame shift (no adaptation).")
+@click.option("--fixed-shift", type=INT, help="Always this frame shift (no adaptation).")
 @click.option(
     "--max-shift",
-    type=int,
+    type=INT,
     help="Largest frame shift considered.  [default: twice the shift reaching the nominal "
     "displacement, at least 8]",
 )
 @click.option(
     "--ema",
-    type=float,
+    type=FLOAT,
     default=EMA_LAMBDA,
     show_default=True,
     help="Smoothing λ of the target displacement (eq. 6.2), 0 <= λ < 1.",
@@ -114,14 +108,14 @@ def size_option(value: str | None) -> tuple[int, int] | None:
 )
 @click.option(
     "--max-depth",
-    type=float,
+    type=FLOAT,
     default=MAX_DEPTH,
     show_default=True,
     help="Depth (m) at the end of the colour map of depth_png/ and preview.mp4.",
 )
 @DEVICE_OPTION
 @click.option("--quiet", is_flag=True, help="No progress bar.")
-def infer(input_: Path, res: str | None, **o) -> None:
+def infer(input_: Path, res: tuple[int, int] | None, **o) -> None:
     """Depth maps of your own stabilised video with a depth network (thesis chapter 6).
 
     The depth of frame t comes from pairs (frame t - shift, frame t), shifts chosen from the
@@ -130,7 +124,7 @@ def infer(input_: Path, res: str | None, **o) -> None:
     from ..video.infer import InferOptions, describe, prepare
     from ..video.infer import run as run_inference
 
-    opts = InferOptions(input=input_, res=size_option(res), **o)
+    opts = InferOptions(input=input_, res=res, **o)
     try:
         job = prepare(opts)
     except ValueError as e:
@@ -169,7 +163,7 @@ def infer(input_: Path, res: str | None, **o) -> None:
 @click.option("--shifts", default="1,2,3", show_default=True, help="Pairs per frame to score, n.")
 @int_option("--max-shift", MULTISHIFT_MAX_SHIFT, "Largest frame shift; frames t >= it are scored.")
 @BETA_MEAN_OPTION
-@click.option("--scenes", type=int, help="Score only the split's first N sequences.")
+@click.option("--scenes", type=INT, help="Score only the split's first N sequences.")
 @click.option("--out", type=click.Path(path_type=Path), required=True, help="Results folder.")
 @DEVICE_OPTION
 @click.option("--quiet", is_flag=True, help="No progress bar.")
