@@ -18,7 +18,7 @@ from conftest import invoke_main
 
 from benchmark import cli as bench
 from benchmark.cli import limits
-from benchmark.cli.limits import Bound, Bounded, Resolution
+from benchmark.cli.limits import Bound, Bounded, Numbers, Resolution
 
 
 def _flag(param: click.Parameter) -> str:
@@ -27,8 +27,9 @@ def _flag(param: click.Parameter) -> str:
 
 def _numeric() -> list[tuple[str, click.Parameter]]:
     """(command, option) of every option taking a number or a resolution, by click's type, of
-    every command: INTEGER, FLOAT, click's ranges and the project's own numeric types."""
-    numeric = (click.types.IntParamType, click.types.FloatParamType, Bounded, Resolution)
+    every command: INTEGER, FLOAT, click's ranges and the project's own numeric types (a
+    number, a resolution, a list of numbers)."""
+    numeric = (click.types.IntParamType, click.types.FloatParamType, Bounded, Resolution, Numbers)
     return [
         (name, p)
         for name, command in sorted(bench.cli.commands.items())
@@ -50,7 +51,7 @@ def _inside(bound: Bound, value: float) -> bool:
 
 
 def _is_int(param: click.Parameter) -> bool:
-    base = param.type.base if isinstance(param.type, Bounded) else param.type
+    base = param.type.base if isinstance(param.type, (Bounded, Numbers)) else param.type
     return isinstance(base, click.types.IntParamType) or isinstance(param.type, Resolution)
 
 
@@ -82,6 +83,10 @@ def _texts(command: str, param: click.Parameter) -> list[tuple[str, bool]]:
         side = int(bound.high)
         cases += [(f"64x{v}", _inside(bound, v) and _inside(bound, 64)) for v in (0, side + 1)]
         cases += [(f"{side}x64", True)]
+    if isinstance(param.type, Numbers):  # each value of a list on its own
+        inside = [text for text, ok in cases if ok]
+        cases += [(f"{inside[0]},{text}", ok) for text, ok in cases if not ok]
+        cases += [(",".join(inside), True)]
     return cases
 
 
@@ -129,6 +134,7 @@ def test_the_walk_finds_the_options_of_the_issue():
     for name in ("run", "finetune", "fly", "toy"):
         assert (name, "--threads") in seen
     assert {("fly", "--res"), ("fly", "--seed"), ("infer", "--speed"), ("infer", "--fps")} <= seen
+    assert {("speed", "--resolutions"), ("speed", "--batches"), ("toy", "--lambdas")} <= seen
     assert len(REFUSED) > 5 * len(NUMERIC) and len(ACCEPTED) >= len(NUMERIC)
 
 
@@ -137,8 +143,9 @@ def test_every_numeric_option_is_bounded_by_its_row(command, param):
     """Each numeric option has a row in LIMITS and a type that checks it (a new option without
     a row, or declared with click's int or float, fails here, naming it)."""
     bound = _bound(command, param)
-    types = "limits.INT, limits.FLOAT or limits.RESOLUTION"
-    assert isinstance(param.type, (Bounded, Resolution)), f"{command} {_flag(param)}: not {types}"
+    types = "limits.INT, FLOAT, RESOLUTION, INTS or FLOATS"
+    bounded = (Bounded, Resolution, Numbers)
+    assert isinstance(param.type, bounded), f"{command} {_flag(param)}: not {types}"
     assert bound.low <= bound.high and math.isfinite(bound.low) and math.isfinite(bound.high)
 
 
@@ -186,6 +193,8 @@ def test_a_value_within_the_bounds_parses(tmp_path, command, param, text):
     if isinstance(param.type, Resolution):
         w, h = value
         assert text in (str(w), f"{w}x{h}")
+    elif isinstance(param.type, Numbers):
+        assert value == tuple((int if _is_int(param) else float)(v) for v in text.split(","))
     else:
         assert value == (int(text) if _is_int(param) else float(text))
 

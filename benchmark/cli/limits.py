@@ -5,8 +5,9 @@ value for '--threads': must be at most 1,024 threads, got 100,000``.
 
 Numeric options declare ``type=INT`` or ``type=FLOAT`` (:class:`Bounded`: click's own, then
 the row of the option's flag in the command being parsed); ``--res`` (N or WxH pixels)
-declares :data:`RESOLUTION`, bounded per side. A new numeric option needs one row here:
-tests/test_cli_bounds.py walks every command's options and names one without a row.
+declares :data:`RESOLUTION`, bounded per side; a comma-separated list declares ``type=INTS``
+or ``type=FLOATS`` (:class:`Numbers`), each value bounded. A new numeric option needs one row
+here: tests/test_cli_bounds.py walks every command's options and names one without a row.
 Where a library constant already says how far a value may go, the row imports it; the
 libraries keep their own checks of the lower bounds for callers of their Python API.
 """
@@ -105,12 +106,18 @@ LIMITS: dict[str, Bound] = {
     "toy --jobs": Bound(1, WORKERS, "worker processes"),
     "toy --iterations": Bound(1, 1_000_000, "iterations"),  # the thesis: 10,000
     "toy --odm-every": Bound(1, 1_000_000, "iterations"),
+    # the (λ, κ) grid, each value: the thesis' ends at 100 and 3
+    "toy --lambdas": Bound(0.0, 1e6, above=True),
+    "toy --kappas": Bound(0.0, 1e6, above=True),
     # scoring (eval, speed, eval-multishift, eval-sequences)
     "--displacement": Bound(0.0, MAX_DEPTH, "m", above=True),  # beyond any depth it scores
     "--scenes": Bound(1, SCENES, "scenes"),
     "--time-res": Bound(64, CAMERA_SIDE, "pixels"),  # multiples of 64: speed's own check
     "--warmup": Bound(0, 100_000, "passes"),
     "--repeats": Bound(1, 100_000, "passes"),
+    # each value of the list; a GMAC column runs the network once at that size
+    "speed --resolutions": Bound(64, CAMERA_SIDE, "pixels"),
+    "speed --batches": Bound(1, BATCH, "samples"),
     # footage (infer, finetune): its motion and camera; infer's frame shifts and outputs
     # 1 mm/s to 1 km/s, 0.01 to 1000 frames/s: a frame's displacement (speed / fps) stays within
     # 1 µm..100 km, so the shift reaching the nominal displacement cannot overflow; the
@@ -202,3 +209,38 @@ class Resolution(click.ParamType):
 
 
 RESOLUTION = Resolution()
+
+
+class Numbers(click.ParamType):
+    """Comma-separated numbers (``8,256``) -> a tuple of click's INTEGER or FLOAT (``base``),
+    each within the row of the option's flag in the command being parsed."""
+
+    def __init__(self, base: click.ParamType):
+        self.base = base
+        self.name = f"{base.name} list"
+        self.what = "integers" if isinstance(base, click.types.IntParamType) else "numbers"
+
+    def get_metavar(self, param: click.Parameter, ctx: click.Context | None = None) -> str:
+        return "N,N,..."
+
+    def convert(self, value, param: click.Parameter | None, ctx: click.Context | None):
+        if isinstance(value, tuple):  # already converted
+            return value
+        items = [v.strip() for v in str(value).split(",")]
+        bound = bound_of(_command(ctx), _flag(param)) if param is not None else None
+        numbers = []
+        for item in items:
+            try:
+                number = int(item) if self.what == "integers" else float(item)
+            except ValueError:
+                self.fail(f"expected comma-separated {self.what}, got '{value}'", param, ctx)
+            problem = bound.problem(number) if bound is not None else None
+            if problem:
+                self.fail(f"each value {problem}", param, ctx)
+            numbers.append(number)
+        return tuple(numbers)
+
+
+#: the types of the options taking a list of numbers
+INTS = Numbers(click.INT)
+FLOATS = Numbers(click.FLOAT)

@@ -21,7 +21,7 @@ from ..core.runfolder import (
     has_summary,
 )
 from ..supervised import speed as speed_table
-from .limits import FLOAT
+from .limits import FLOAT, INTS
 from .options import (
     DATA_OPTION,
     DEVICE_OPTION,
@@ -312,13 +312,11 @@ def compare(data: Path, names: str, out: Path | None, **o) -> None:
     click.echo(f"comparison in {comparison_paths(out / COMPARISON)['md']}")
 
 
-def _int_list(option: str, value: str) -> tuple[int, ...]:
-    try:
-        values = tuple(int(v) for v in value.split(",") if v.strip())
-    except ValueError:
-        raise UserError(f"{option}: expected comma-separated integers, got '{value}'") from None
-    if not values or any(v < 64 or v % 64 for v in values):
-        raise UserError(f"{option}: sizes must be positive multiples of 64, got '{value}'")
+def _multiples_of_64(option: str, values: tuple[int, ...]) -> tuple[int, ...]:
+    """Square sizes (pixels, within limits.LIMITS) that the networks take: multiples of 64."""
+    if any(v % 64 for v in values):
+        shown = ",".join(map(str, values))
+        raise UserError(f"{option}: sizes must be positive multiples of 64, got '{shown}'")
     return values
 
 
@@ -341,6 +339,7 @@ def _int_list(option: str, value: str) -> tuple[int, ...]:
 )
 @click.option(
     "--batches",
+    type=INTS,
     default=",".join(map(str, speed_table.TRAIN_BATCHES)),
     show_default=True,
     help="--train: comma-separated batch sizes.",
@@ -364,6 +363,7 @@ def _int_list(option: str, value: str) -> tuple[int, ...]:
 )
 @click.option(
     "--resolutions",
+    type=INTS,
     default=",".join(map(str, speed_table.DEFAULT_MAC_SIZES)),
     show_default=True,
     help="Square input sizes (px) for the GMAC columns.",
@@ -395,11 +395,11 @@ def _int_list(option: str, value: str) -> tuple[int, ...]:
 def speed(
     names: str | None,
     train: bool,
-    batches: str,
+    batches: tuple[int, ...],
     data: Path | None,
     baseline: bool,
     compile_: bool,
-    resolutions: str,
+    resolutions: tuple[int, ...],
     time_res: int,
     warmup: int,
     repeats: int,
@@ -419,8 +419,8 @@ def speed(
     no_net = [n for n in chosen if not registry.MODELS[n].trainable]
     if no_net:
         raise UserError(f"--models: {', '.join(no_net)} ha(s) no network to time")
-    sizes = _int_list("--resolutions", resolutions)
-    _int_list("--time-res", str(time_res))  # multiples of 64; the ranges: limits.LIMITS
+    sizes = _multiples_of_64("--resolutions", resolutions)  # the ranges: limits.LIMITS
+    _multiples_of_64("--time-res", (time_res,))
     check_out_folder(out, error=UserError)
     dev = torch_device(device)
     if threads > 0:
@@ -447,13 +447,8 @@ def _train_speed(names, batches, data, baseline, compile_, time_res, device, thr
     no_net = [n for n in chosen if not registry.MODELS[n].trainable]
     if no_net:
         raise UserError(f"--models: {', '.join(no_net)} ha(s) no network to train")
-    try:
-        sizes = tuple(int(v) for v in batches.split(",") if v.strip())
-    except ValueError:
-        sizes = ()
-    if not sizes or min(sizes) < 1:
-        raise UserError(f"--batches: expected comma-separated positive integers, got '{batches}'")
-    _int_list("--time-res", str(time_res))
+    sizes = batches  # each within limits.LIMITS
+    _multiples_of_64("--time-res", (time_res,))
     ctx = click.get_current_context()
     given = {
         k: ctx.params[k]

@@ -12,7 +12,6 @@ scored on 5-frame sequences as thesis §5.4.3-5.4.4 does (:mod:`benchmark.unsupe
 from __future__ import annotations
 
 import json
-import math
 import time
 from pathlib import Path
 
@@ -31,7 +30,7 @@ from ..unsupervised import toy_jobs, toy_plots, toy_runs
 from ..unsupervised.reprojection import SMOOTH_LOSSES
 from ..unsupervised.sequence_eval import PAIR_TARGET_DEPTH, SEQUENCE_LENGTH
 from ..unsupervised.training import smooth_settings
-from .limits import FLOAT, INT
+from .limits import FLOAT, FLOATS, INT
 from .options import (
     DEVICE_OPTION,
     UserError,
@@ -57,20 +56,6 @@ def _load(option: str, root: Path, name: str) -> study.ToyScene:
         return study.load_scene(root, name)
     except (study.ToyDataError, OSError) as e:
         raise UserError(f"{option}: {e} (render it with '{make}')") from None
-
-
-def _grid_option(flag: str, text: str | None) -> tuple[float, ...] | None:
-    """``"0.1,1,10"`` -> (0.1, 1.0, 10.0); a UsageError naming ``flag`` unless positive
-    finite numbers."""
-    if text is None:
-        return None
-    try:
-        values = tuple(float(v) for v in text.split(","))
-    except ValueError:
-        raise UserError(f"{flag}: expected numbers separated by commas, got '{text}'") from None
-    if not all(math.isfinite(v) and v > 0 for v in values):
-        raise UserError(f"{flag}: values must be positive and finite, got '{text}'")
-    return values
 
 
 def _losses_option(text: str | None) -> tuple[str, ...] | None:
@@ -166,12 +151,14 @@ def _summary(results: dict, seconds: float) -> str:
 )
 @click.option(
     "--lambdas",
+    type=FLOATS,
     help="Comma-separated λ grid (smooth-loss weights).  [default: "
     + ",".join(f"{v:g}" for v in study.LAMBDAS)
     + "]",
 )
 @click.option(
     "--kappas",
+    type=FLOATS,
     help="Comma-separated κ grid (edge sensitivities).  [default: "
     + ",".join(f"{v:g}" for v in study.KAPPAS)
     + "]",
@@ -221,8 +208,8 @@ def toy_cmd(
     out: Path,
     iterations: int | None,
     odm_every: int | None,
-    lambdas: str | None,
-    kappas: str | None,
+    lambdas: tuple[float, ...] | None,
+    kappas: tuple[float, ...] | None,
     losses: str | None,
     quick: bool,
     device: str,
@@ -252,8 +239,8 @@ def toy_cmd(
     )
     if odm_every is not None:
         cfg.odm_every = odm_every
-    cfg.lambdas = _grid_option("--lambdas", lambdas) or cfg.lambdas
-    cfg.kappas = _grid_option("--kappas", kappas) or cfg.kappas
+    cfg.lambdas = lambdas or cfg.lambdas  # each within limits.LIMITS
+    cfg.kappas = kappas or cfg.kappas
     cfg.losses = _losses_option(losses) or cfg.losses
     scenes = [_load("--horizon", horizon, "horizon"), _load("--flower", flower, "flower")]
     settings = toy_runs.settings(cfg, scenes)
