@@ -25,7 +25,7 @@ test: $(STAMP) lint
 	$(MAKE) --no-print-directory test-bench-only
 
 # The suite again under an old x86-64's CPU kernels (OpenBLAS, numpy SIMD, ATen, oneDNN, libm):
-# what must not depend on the machine does not (README: Same results on every machine).
+# what must not depend on the machine does not (docs/DETERMINISM.md).
 test-kernels: $(STAMP)
 	tests/old_x86_kernels.sh $(BIN)/python -m pytest -q -p no:cacheprovider
 

@@ -2,7 +2,7 @@
 # Run a command under the CPU kernels of an old x86-64 machine, whatever this one is: OpenBLAS'
 # Sandybridge kernels, numpy's baseline SIMD only, ATen's "default" (no AVX) and oneDNN's SSE4.1
 # kernels, glibc's libm without its FMA/AVX2 variants. Results that must not depend on the CPU
-# (README: "Same results on every machine") are checked by running the suite under it:
+# (docs/DETERMINISM.md) are checked by running the suite under it:
 #   tests/old_x86_kernels.sh .venv/bin/python -m pytest -q
 set -euo pipefail
 if [ "$(uname -m)" != x86_64 ]; then

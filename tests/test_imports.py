@@ -134,7 +134,7 @@ def test_no_import_cycles():
     assert cycle is None, "import cycle: " + " -> ".join(cycle or [])
 
 
-#: benchmark's groups of modules (README code map): each may import benchmark.core, never the
+#: benchmark's groups of modules (the code map of docs/ARCHITECTURE.md): each may import benchmark.core, never the
 #: other way round
 BENCHMARK_GROUPS = ("supervised", "unsupervised", "video", "flight", "cli")
 

@@ -27,7 +27,7 @@ class UserError(click.ClickException):
 
 
 #: the default --data: stillbox-gen's default output at 64 px, and the command that makes it
-#: (the 3,000 scenes of the README's results)
+#: (the 3,000 scenes of docs/results/chapter-3.md)
 DEFAULT_DATA = default_root(64, 64)
 MAKE_DEFAULT_DATA = "stillbox-gen --res 64 --scenes 3000"
 

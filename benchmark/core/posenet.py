@@ -36,8 +36,8 @@ POSE_SCALE = 0.1
 #: bias giving it through 1 + ELU. With DepthNet's own initialisation, a quarter (``-tiny``) to a
 #: half (full width) of its first outputs are below 0.1 m (spikes of ξ = 1/θ up to 10 /m), and the
 #: smooth loss of those spikes is 10⁴ times the photometric loss: the first steps only flatten
-#: them, pulling the neighbouring depths towards 0.1 m (measured: see the README, "Training
-#: without depth").
+#: them, pulling the neighbouring depths towards 0.1 m (measured: docs/results/unsupervised.md,
+#: "Why the first short training did not learn").
 INITIAL_DEPTH = 10.0
 
 

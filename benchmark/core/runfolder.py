@@ -23,7 +23,7 @@ method).
 
 A fly run (``stillbox-bench fly``) writes ``config.json``, ``episodes/NNNNNN.json`` (one per
 finished episode, as it ends), ``plots/episode_NNNNNN.png``, ``episodes.csv`` and, last,
-``summary.json`` (README, "Closed-loop flight").
+``summary.json`` (docs/FLIGHT.md).
 
 Writes: JSON, Markdown and CSV reports by :func:`stillbox_gen.formats.atomic_write_text` (a
 temporary name, fsynced, renamed); checkpoints, figures and ``pixels.npz`` by

@@ -56,7 +56,7 @@ from .training import PhotometricStep, smooth_settings
 #: batch 32, about 1 CPU-hour at 64 px here (unsupervised steps: ~10 samples per CPU-second)
 STEPS = 1000
 #: Steps of the pose warm-up (DepthNet frozen). A guess to be measured (the proof experiment in
-#: the README): Adam moves every PoseNet weight by about lr = 2e-4 a step, all 256 inputs of its
+#: docs/results/finetune/README.md): Adam moves every PoseNet weight by about lr = 2e-4 a step, all 256 inputs of its
 #: prediction layer together, so a constant flight direction (a forward flight) is within reach in
 #: tens of steps; 200 leaves room for 5-frame windows whose motion varies, and is a fifth of STEPS.
 #: (Joint training from a flat DepthNet had not found StillBox's random directions in 120 steps;
