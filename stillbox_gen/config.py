@@ -270,7 +270,8 @@ class RenderConfig:
     max_bounces: int = 1
     persistent: bool = True  # keep scene data between the frames of a scene (same pixels)
     # Cycles' light tree picks among many lights; with our one sun it only costs time: off, a
-    # frame's sampling takes 7-8 % less, 4 % of pixels move, most by 1/255 (docs/results/generator-speed/README.md)
+    # frame's sampling takes 7-8 % less, 4 % of pixels move, most by 1/255
+    # (docs/results/generator-speed/README.md)
     light_tree: bool = False
     max_distance: float = 200.0  # metres, camera clip end; farther surfaces are misses
     near_clip: float = 0.05  # metres
@@ -289,8 +290,8 @@ class RenderConfig:
     )
 
 
-# --quality: render-section values (measured with `stillbox-gen bench`, see docs/SPEED.md); "default"
-# is RenderConfig's own.
+# --quality: render-section values (measured with `stillbox-gen bench`, see docs/SPEED.md);
+# "default" is RenderConfig's own.
 QUALITY = {
     "fast": {"shading": "direct", "samples": 1, "denoise": False},
     "default": {

@@ -134,8 +134,8 @@ def test_no_import_cycles():
     assert cycle is None, "import cycle: " + " -> ".join(cycle or [])
 
 
-#: benchmark's groups of modules (the code map of docs/ARCHITECTURE.md): each may import benchmark.core, never the
-#: other way round
+#: benchmark's groups of modules (the code map of docs/ARCHITECTURE.md): each may import
+#: benchmark.core, never the other way round
 BENCHMARK_GROUPS = ("supervised", "unsupervised", "video", "flight", "cli")
 
 

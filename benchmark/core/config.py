@@ -102,8 +102,9 @@ class TrainConfig:
     ``last.pt`` checkpoints (0: epoch ends only); ``log_every``: steps between ``steps.csv``
     rows; ``cache``: decoded frames in memory (None: when they fit).
 
-    Speed switches (docs/SPEED.md, measured in docs/results/training-speed.md; results equal within floating-point noise
-    unless said): ``channels_last``: network and inputs in channels-last memory format (on this
+    Speed switches (docs/SPEED.md, measured in docs/results/training-speed.md; results equal
+    within floating-point noise unless said): ``channels_last``: network and inputs in
+    channels-last memory format (on this
     2-core CPU 1.12× faster DepthNet steps at batch 256, 0.9× at batch 8: off by default);
     ``compile``: ``torch.compile`` the network (here 55 s of compilation, then 0.74× at batch 8:
     off by default); ``amp``: bfloat16 autocast of the forward pass (None: on CUDA devices that

@@ -55,8 +55,9 @@ from .training import PhotometricStep, smooth_settings
 #: Optimiser steps of a fine-tuning: 5 passes over a 1-minute 30 fps flight (1,800 frames) at
 #: batch 32, about 1 CPU-hour at 64 px here (unsupervised steps: ~10 samples per CPU-second)
 STEPS = 1000
-#: Steps of the pose warm-up (DepthNet frozen). A guess to be measured (the proof experiment in
-#: docs/results/finetune/README.md): Adam moves every PoseNet weight by about lr = 2e-4 a step, all 256 inputs of its
+#: Steps of the pose warm-up (DepthNet frozen). A guess to be measured (the proof experiment,
+#: docs/results/finetune/README.md): Adam moves every PoseNet weight by about lr = 2e-4 a step,
+#: all 256 inputs of its
 #: prediction layer together, so a constant flight direction (a forward flight) is within reach in
 #: tens of steps; 200 leaves room for 5-frame windows whose motion varies, and is a fifth of STEPS.
 #: (Joint training from a flat DepthNet had not found StillBox's random directions in 120 steps;

@@ -1,6 +1,7 @@
 """Usage: python docs/results/finetune/footage_from_dataset.py DATA SPLIT OUT [SCENES]
 
-The footage of the fine-tuning proof (docs/UNSUPERVISED.md, "Fine-tuning on your own footage"): the stabilised
+The footage of the fine-tuning proof (docs/UNSUPERVISED.md, "Fine-tuning on your own footage"):
+the stabilised
 scenes of one split of a stillbox-gen dataset (the first SCENES, default all) as one folder of
 frames, ``OUT/frames/NNNNNN.png`` in order, and ``OUT/poses.csv`` with columns t,x,y,z: seconds
 and the camera position in metres, in the scenes' camera axes (x right, y down, z forward; one
