@@ -144,7 +144,7 @@ _RUN_OPTIONS = [
             type=click.Choice(list(config.QUALITY)),
             help="Samples per pixel (anti-aliasing; the shading has no noise): "
             + ", ".join(f"{q} {v['samples']}" for q, v in config.QUALITY.items())
-            + " (README has the measured costs).  [default: preset]",
+            + " (docs/SPEED.md has the measured costs).  [default: preset]",
         ),
     ),
     (

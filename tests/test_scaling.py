@@ -75,6 +75,6 @@ def test_report_writes_rows_by_samples_a_fit_and_a_plot(tmp_path):
     assert rows[0].startswith("run,samples,mae") and rows[1].startswith("ours-e1000,32000,16.5")
     fits = json.loads((out / "fit.json").read_text())["fits"]
     assert fits == json.loads(json.dumps(summary["fits"])) and len(fits) == 2
-    at = fits["power law"]["mae_at_thesis_budget"]
+    at = fits["power law"]["mae_at_target"]
     assert at["low"] < at["fit"] < at["high"] < 14.0
     assert (out / "mae_vs_samples.png").stat().st_size > 10_000

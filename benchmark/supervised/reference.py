@@ -171,7 +171,7 @@ def plot(rows: list[dict], path: Path, floor: float | None = None) -> None:
         pts = [(r["samples"], r["mae"]) for r in rows if (r["code"], r["seed"]) == (code, seed)]
         style = "-o" if code == "ours" else "--s"
         ax.plot(*zip(*pts, strict=True), style, label=f"{code} (seed {seed})")
-    ax.axhline(4.72, color="k", lw=0.8, ls=":", label="thesis, 44 M samples (4.72 m)")
+    ax.axhline(4.72, color="k", lw=0.8, ls=":", label="thesis Table 3.4 (4.72 m)")
     if floor is not None:
         ax.axhline(floor, color="grey", lw=0.8, label=f"perfect 1/4-res. output ({floor:.2f} m)")
     ax.set(xscale="log", xlabel="training samples", ylabel="test MAE (m)")
