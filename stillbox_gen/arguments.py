@@ -7,6 +7,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from .errors import ConfigError
+from .layout import enclosing_dataset
 
 
 def parse_resolution(value: str, flag: str = "--res") -> tuple[int, int]:
@@ -38,8 +39,17 @@ def parse_shares(value: str, flag: str = "--split") -> tuple[float, ...]:
         raise ConfigError(f"{flag}: expected TRAIN,VAL,TEST shares, got '{value}'") from None
 
 
-def check_out_folder(out: Path, flag: str = "--out", error: type[Exception] = ConfigError) -> None:
-    """A folder to write into (created later when missing) must not be a file: ``error`` (the
-    command line's own one-line error) naming ``flag`` otherwise."""
+def check_out_folder(
+    out: Path,
+    flag: str = "--out",
+    error: type[Exception] = ConfigError,
+    inside_dataset: bool = False,
+) -> None:
+    """A folder to write into (created later when missing) must not be a file, nor lie inside
+    a dataset (whose `validate` would then report stray files) unless ``inside_dataset``:
+    ``error`` (the command line's own one-line error) naming ``flag`` otherwise."""
     if out.exists() and not out.is_dir():
         raise error(f"{flag}: '{out}' is a file, not a folder")
+    dataset = None if inside_dataset else enclosing_dataset(out)
+    if dataset is not None:
+        raise error(f"{flag}: '{out}' is inside the dataset '{dataset}'; write elsewhere")

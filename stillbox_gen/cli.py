@@ -20,6 +20,7 @@ from . import config
 from .conventions import MAX_DEPTH, NOMINAL_SHIFT, default_root
 from .errors import ConfigError, DatasetError
 from .formats import disk_full_message, is_disk_full
+from .layout import enclosing_dataset
 from .workers import Terminated, sigterm_as_interrupt
 
 if TYPE_CHECKING:
@@ -336,6 +337,37 @@ def merge(out: Path, sources: tuple[Path, ...]) -> None:
     )
 
 
+@cli.command()
+@click.argument("dataset", type=PathArg())
+@click.option(
+    "--format",
+    "fmt",
+    type=click.Choice(["webdataset"]),
+    default="webdataset",
+    show_default=True,
+    help="webdataset: tar shards of whole scenes (docs/FORMAT.md, Packed shards).",
+)
+@click.option("--out", type=PathArg(), required=True, help="New or empty folder for the shards.")
+@click.option(
+    "--scenes-per-shard",
+    type=int,
+    default=100,
+    show_default=True,
+    help="Scenes per tar shard (a split's last shard may hold fewer).",
+)
+def pack(dataset: Path, fmt: str, out: Path, scenes_per_shard: int) -> None:
+    """Pack a finished dataset into tar shards of whole scenes, with index.json (checksums);
+    read them with stillbox_gen.packed."""
+    from .pack import pack_webdataset
+
+    with reading("DATASET"):
+        summary = pack_webdataset(dataset, out, scenes_per_shard)
+    click.echo(
+        f"{out}: packed {summary.scenes} scenes into {summary.shards} shards "
+        f"({summary.bytes / 1e6:.1f} MB)"
+    )
+
+
 def build_config(o: dict) -> config.DatasetConfig:
     """The dataset config of the generate options ``o``: the preset with the flags' values
     (config.Flag: each sets its fields) over it, validated (ConfigError naming the flag, or the
@@ -580,6 +612,9 @@ def check_out_file(out: Path, flag: str = "--out") -> None:
         raise ConfigError(f"{flag}: '{out}' is a folder; give a file name such as preview.png")
     if not out.parent.is_dir():
         raise ConfigError(f"{flag}: the folder of '{out}' does not exist")
+    dataset = enclosing_dataset(out.parent)
+    if dataset is not None:  # `validate` would then report a stray file
+        raise ConfigError(f"{flag}: '{out}' is inside the dataset '{dataset}'; write elsewhere")
 
 
 def generate_versions() -> str:

@@ -129,7 +129,10 @@ def join_devices(*values: str | None) -> str:
 def prepare_output(out: Path, cfg: DatasetConfig, scenes: int, device: str = CPU_DEVICE) -> str:
     """Check --out, mark the dataset incomplete; ConfigError (nothing written) on conflicts.
     Returns its ``render.device``: ``device`` after those recorded there (join_devices)."""
-    check_out_folder(out)
+    check_out_folder(out, inside_dataset=True)  # out may be a dataset: it resumes or grows
+    nested = layout.enclosing_dataset(out.parent)
+    if nested is not None:
+        raise ConfigError(f"--out: '{out}' is inside the dataset '{nested}'; write elsewhere")
     existing = out / layout.DATASET_JSON
     recorded = None  # the devices of earlier runs into it
     try:

@@ -32,6 +32,7 @@ from tqdm import tqdm
 
 from stillbox_gen.conventions import MAX_DEPTH
 from stillbox_gen.formats import temp_path
+from stillbox_gen.layout import enclosing_dataset
 
 from ..core.data import normalise
 from ..core.errors import FieldError, Ref
@@ -140,6 +141,9 @@ def check_options(o: InferOptions, out: bool = True) -> None:
         raise FieldError("train_fov", "give ", Ref("res"), " WxH too (the training frame size)")
     if out and o.out.exists() and (not o.out.is_dir() or any(o.out.iterdir())):
         raise FieldError("out", f"'{o.out}' exists and is not an empty folder")
+    dataset = enclosing_dataset(o.out) if out else None
+    if dataset is not None:
+        raise FieldError("out", f"'{o.out}' is inside the dataset '{dataset}'; write elsewhere")
 
 
 def _motion(o: InferOptions, source: footage.FrameSource) -> tuple[np.ndarray, float]:

@@ -20,9 +20,9 @@ from .report import plot
 def _check_out_folder(out: Path) -> None:
     """--out can be written: a folder, or a path whose nearest existing ancestor is a writable
     folder (created after the measurements). ConfigError naming --out otherwise."""
-    check_out_folder(out)
+    check_out_folder(out, inside_dataset=True)  # stats.json and stats.png may sit at its root
     existing = next(p for p in (out, *out.absolute().parents) if p.exists())
-    check_out_folder(existing)
+    check_out_folder(existing, inside_dataset=True)
     if not os.access(existing, os.W_OK | os.X_OK):
         raise ConfigError(f"--out: cannot create '{out}' ('{existing}' is not writable)")
 
