@@ -368,37 +368,6 @@ def pack(dataset: Path, fmt: str, out: Path, scenes_per_shard: int) -> None:
     )
 
 
-@cli.command()
-@click.argument("dataset", type=PathArg())
-@click.option(
-    "--format",
-    "fmt",
-    type=click.Choice(["webdataset"]),
-    default="webdataset",
-    show_default=True,
-    help="webdataset: tar shards of whole scenes (docs/FORMAT.md, Packed shards).",
-)
-@click.option("--out", type=PathArg(), required=True, help="New or empty folder for the shards.")
-@click.option(
-    "--scenes-per-shard",
-    type=int,
-    default=100,
-    show_default=True,
-    help="Scenes per tar shard (a split's last shard may hold fewer).",
-)
-def pack(dataset: Path, fmt: str, out: Path, scenes_per_shard: int) -> None:
-    """Pack a finished dataset into tar shards of whole scenes, with index.json (checksums);
-    read them with stillbox_gen.packed."""
-    from .pack import pack_webdataset
-
-    with reading("DATASET"):
-        summary = pack_webdataset(dataset, out, scenes_per_shard)
-    click.echo(
-        f"{out}: packed {summary.scenes} scenes into {summary.shards} shards "
-        f"({summary.bytes / 1e6:.1f} MB)"
-    )
-
-
 def build_config(o: dict) -> config.DatasetConfig:
     """The dataset config of the generate options ``o``: the preset with the flags' values
     (config.Flag: each sets its fields) over it, validated (ConfigError naming the flag, or the
