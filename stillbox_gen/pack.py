@@ -15,7 +15,7 @@ import hashlib
 import io
 import json
 import tarfile
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import BinaryIO
@@ -112,7 +112,7 @@ def _scene_files(root: Path, scene: Scene) -> dict[str, bytes]:
     return members
 
 
-def _write_shard(f: BinaryIO, scenes: list[dict[str, bytes]]) -> tuple[str, int]:
+def _write_shard(f: BinaryIO, scenes: Iterable[dict[str, bytes]]) -> tuple[str, int]:
     """The tar of ``scenes`` (each {member: bytes}) into ``f``; returns (SHA-256 hex, bytes)."""
     out = _HashingWriter(f)
     with tarfile.open(fileobj=out, mode="w", format=tarfile.USTAR_FORMAT) as tar:
@@ -167,7 +167,8 @@ def pack_webdataset(
         shards = []
         for n, (split, ks) in enumerate(scenes_of_shards):
             scenes = [ds.scene(k) for k in ks]
-            members = [_scene_files(dataset, s) for s in scenes]
+            # one scene's files in memory at a time: the tar is written as they are read
+            members = (_scene_files(dataset, s) for s in scenes)
             path = out / shard_name(n)
             result: dict = {}
 

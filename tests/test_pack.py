@@ -13,13 +13,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from conftest import assert_user_error, file_tree, invoke_cli
 
 from benchmark.core.metrics import aggregate, image_metrics
 from stillbox_gen.dataset import Dataset, Scene
 from stillbox_gen.errors import DatasetError
 from stillbox_gen.packed import INDEX_JSON, PackedDataset
 from stillbox_gen.torch_dataset import StillBoxPackedPairs, StillBoxPairs
-from tests.conftest import assert_user_error, file_tree, invoke_cli
 
 SHARD_SCENES = 1  # 4 scenes -> 4 shards: two per DataLoader worker
 
@@ -212,8 +212,7 @@ def test_an_interrupted_pack_leaves_nothing(default_dataset, tmp_path, monkeypat
 
 @pytest.mark.parametrize("case", ["not empty", "a file", "inside the dataset", "zero per shard"])
 def test_bad_out_is_refused_and_nothing_written(default_dataset, tmp_path, case):
-    before = file_tree(default_dataset)
-    out = tmp_path / "P"
+    source, out = default_dataset, tmp_path / "P"
     words = ["--out"]
     extra: list[object] = []
     if case == "not empty":
@@ -223,17 +222,20 @@ def test_bad_out_is_refused_and_nothing_written(default_dataset, tmp_path, case)
     elif case == "a file":
         out.write_text("mine")
         words.append("is a file")
-    elif case == "inside the dataset":
-        out = default_dataset / "packed"
+    elif case == "inside the dataset":  # in a copy: a bug must not write into the shared one
+        source = tmp_path / "D"
+        shutil.copytree(default_dataset, source)
+        out = source / "packed"
         words.append("inside the dataset")
     else:
         extra, words = ["--scenes-per-shard", 0], ["--scenes-per-shard"]
+    before = file_tree(source)
     existed = _tree(out) if out.is_dir() else out.read_bytes() if out.exists() else None
-    result = invoke_cli("pack", default_dataset, "--out", out, *extra)
+    result = invoke_cli("pack", source, "--out", out, *extra)
     assert_user_error(result, *words)
     after = _tree(out) if out.is_dir() else out.read_bytes() if out.exists() else None
     assert after == existed
-    assert file_tree(default_dataset) == before
+    assert file_tree(source) == before
 
 
 def test_a_folder_that_is_no_valid_dataset_is_refused(default_dataset, tmp_path):
