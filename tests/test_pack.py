@@ -256,3 +256,21 @@ def test_a_folder_that_is_no_valid_dataset_is_refused(default_dataset, tmp_path)
     result = invoke_cli("pack", changed, "--out", tmp_path / "P2", "--scenes-per-shard", 1)
     assert_user_error(result, "DATASET", last.rgb[0].name, "SHA-256 differs from the record")
     assert not (tmp_path / "P1").exists() and not (tmp_path / "P2").exists()
+
+
+def test_the_benchmarks_evaluation_pairs_are_the_same(default_dataset, packed):
+    """The benchmark's own loader (FrameStore, PairDataset in eval mode) over the packed scenes
+    gives the folder's batches, and so the same scores for any network."""
+    from benchmark.core.data import FrameStore, PairDataset
+
+    folder = PairDataset(FrameStore(Dataset(default_dataset).scenes(), progress=False), "eval")
+    pack = PairDataset(FrameStore(list(PackedDataset(packed).scenes()), progress=False), "eval")
+    assert len(folder) == len(pack) > 0
+    a, b = folder.batch(list(range(len(folder)))), pack.batch(list(range(len(pack))))
+    assert a.keys() == b.keys()
+    for name in a:
+        assert torch.equal(a[name], b[name]), name
+    pred = a["input"].mean(dim=1).exp()  # any deterministic function of the frames
+    assert aggregate(image_metrics(pred, a["target"])) == aggregate(
+        image_metrics(pred, b["target"])
+    )
