@@ -142,6 +142,19 @@ def test_resume_continues_as_one_run_and_keeps_its_options(files, tmp_path):
     assert_bench_error(finetune(files, tmp_path / "none", "--resume", ok=False), "--resume")
 
 
+def test_resume_keeps_steps_and_intervals_unless_given_again(files, tmp_path):
+    """--steps, --log-every and --ckpt-every left out of --resume are the run's, not the
+    defaults (which would log every 10th step and train to 1,000 steps)."""
+    out = tmp_path / "ft"
+    finetune(files, out, "--steps", 2, "--pose-warmup", 1, "--log-every", 1, "--ckpt-every", 1)
+    finetune(files, out, "--resume", "--steps", 4)
+    assert [int(r["step"]) for r in _steps(out)] == [1, 2, 3, 4]
+    config = json.loads((out / "config.json").read_text())
+    assert (config["steps"], config["log_every"], config["ckpt_every"]) == (4, 1, 1)
+    proc = finetune(files, out, "--resume")  # the run's 4 steps: nothing left to do
+    assert "Fine-tuned 4 steps" in proc.stdout and len(_steps(out)) == 4
+
+
 @pytest.mark.parametrize(
     ("change", "flag"),
     [

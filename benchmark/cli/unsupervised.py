@@ -35,7 +35,6 @@ from .options import (
     DEVICE_OPTION,
     UserError,
     dataset_dir,
-    int_option,
     torch_device,
     user_error,
 )
@@ -347,7 +346,12 @@ def _load_or_start(
     help="Run folder; checkpoints/best.pt is the fine-tuned depth network.",
 )
 @footage_options
-@int_option("--steps", finetune_lib.STEPS, "Optimiser steps in all (the warm-up's included).")
+@click.option(
+    "--steps",
+    type=INT,
+    help="Optimiser steps in all (the warm-up's included; --resume: the run's unless given).  "
+    f"[default: {finetune_lib.STEPS}]",
+)
 @click.option(
     "--pose-warmup",
     type=INT,
@@ -394,8 +398,10 @@ def _load_or_start(
 @click.option("--threads", type=INT, default=0, show_default=True,
               help="Torch CPU threads (0 = torch default).")  # fmt: skip
 @DEVICE_OPTION
-@int_option("--ckpt-every", default("ckpt_every"), "Steps between checkpoints.")
-@int_option("--log-every", default("log_every"), "Steps between steps.csv rows.")
+@click.option("--ckpt-every", type=INT, help="Steps between checkpoints (--resume: the run's "
+              f"unless given).  [default: {default('ckpt_every')}]")  # fmt: skip
+@click.option("--log-every", type=INT, help="Steps between steps.csv rows (--resume: the run's "
+              f"unless given).  [default: {default('log_every')}]")  # fmt: skip
 @click.option("--quiet", is_flag=True, help="No progress bars.")
 def finetune_cmd(
     input_: Path | None, res: tuple[int, int] | None, out: Path, resume: bool, **o

@@ -75,6 +75,9 @@ RESUMED = (
     *("ckpt", "input", "speed", "poses", "fps", "fov", "focal", "res", "train_fov"),
     *("lr", "batch_size", "pose_warmup", "occlusion", "smooth_weight", "seed", "known_motion"),
 )
+#: Options a resumed fine-tuning takes from its checkpoint unless given again (then the new value
+#: holds: more steps continue the run further)
+RESUMED_UNLESS_GIVEN = ("steps", "ckpt_every", "log_every")
 PHASES = ("pose-warmup", "joint")
 
 
@@ -93,7 +96,7 @@ class FinetuneOptions:
     focal: float | None = None
     res: tuple[int, int] | None = None
     train_fov: float | None = None
-    steps: int = STEPS
+    steps: int | None = None
     pose_warmup: int | None = None
     lr: float | None = None
     batch_size: int | None = None
@@ -104,8 +107,8 @@ class FinetuneOptions:
     resume: bool = False
     threads: int = 0
     device: str = "auto"
-    ckpt_every: int = default("ckpt_every")
-    log_every: int = default("log_every")
+    ckpt_every: int | None = None
+    log_every: int | None = None
     quiet: bool = False
 
 
@@ -115,13 +118,14 @@ def defaults(known_motion: bool = False) -> dict:
     r = UNSUPERVISED_RECIPE
     warmup = 0 if known_motion else POSE_WARMUP
     return {"pose_warmup": warmup, "lr": r.lr, "batch_size": r.batch_size, "seed": 0,
-            "known_motion": False, "smooth_weight": SMOOTH_WEIGHT}  # fmt: skip
+            "known_motion": False, "smooth_weight": SMOOTH_WEIGHT, "steps": STEPS,
+            "ckpt_every": default("ckpt_every"), "log_every": default("log_every")}  # fmt: skip
 
 
 def check_numbers(o: FinetuneOptions) -> None:
     """FieldError naming the first option out of its range (reads no file)."""
     rules = (
-        ("steps", o.steps is not None and o.steps >= 1, "must be at least 1"),
+        ("steps", o.steps is None or o.steps >= 1, "must be at least 1"),
         ("pose_warmup", o.pose_warmup is None or o.pose_warmup >= 0, "must be 0 or more"),
         ("lr", o.lr is None or (o.lr > 0 and math.isfinite(o.lr)), "must be a positive number"),
         ("batch_size", o.batch_size is None or o.batch_size >= 1, "must be at least 1"),
@@ -132,8 +136,8 @@ def check_numbers(o: FinetuneOptions) -> None:
         ),  # fmt: skip
         ("seed", o.seed is None or 0 <= o.seed <= MAX_SEED, f"must be from 0 to {MAX_SEED}"),
         ("threads", o.threads >= 0, "must be 0 (torch default) or more"),
-        ("ckpt_every", o.ckpt_every >= 0, "must be 0 (at the end only) or more"),
-        ("log_every", o.log_every >= 1, "must be at least 1"),
+        ("ckpt_every", o.ckpt_every is None or o.ckpt_every >= 0, "must be 0 or more"),
+        ("log_every", o.log_every is None or o.log_every >= 1, "must be at least 1"),
     )
     for name, ok, rule in rules:
         if not ok:
@@ -148,8 +152,8 @@ def _plain(value):
 
 
 def resumed_options(o: FinetuneOptions, recorded: dict, where: Path) -> FinetuneOptions:
-    """``o`` with the RESUMED options the run was started with; one given with another value
-    is a FieldError naming it."""
+    """``o`` with the RESUMED options the run was started with (one given with another value
+    is a FieldError naming it) and the RESUMED_UNLESS_GIVEN ones not given again."""
     kept = {}
     for name in RESUMED:
         given, then = getattr(o, name), recorded.get(name)
@@ -162,6 +166,9 @@ def resumed_options(o: FinetuneOptions, recorded: dict, where: Path) -> Finetune
                 "run keeps its settings (leave ", Ref(name), " out, or start a new ", Ref("out"),
                 ")",
             )  # fmt: skip
+    for name in RESUMED_UNLESS_GIVEN:
+        if getattr(o, name) is None:
+            kept[name] = recorded.get(name)  # None (the default) for a run that recorded none
     types = {"ckpt": Path, "input": Path, "poses": Path, "res": tuple}
     kept = {k: (types[k](v) if k in types and v is not None else v) for k, v in kept.items()}
     return replace(o, **kept)
