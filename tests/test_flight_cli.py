@@ -99,6 +99,11 @@ def test_a_run_cut_short_resumes_per_episode(runs, tmp_path):
         "--resume",
         "depth",
     )
+    line = assert_bench_error(
+        fly("--depth", "oracle", "--max-steps", "299", "--out", out, "--resume", *FAST),
+        "--resume",
+    )
+    assert "--max-steps (flight.max_steps) 300, not 299" in line  # the flag, not the settings
     proc = fly("--depth", "oracle", "--episodes", "2", "--out", out, "--resume", *FAST)
     assert proc.returncode == 0, proc.stderr
     assert runfolder.episode_path(out, 0).read_bytes() == first  # not flown again

@@ -224,14 +224,47 @@ def _check_renderer(kind: str) -> None:
         raise UserError(f"--renderer {kind}: {e}") from None
 
 
+#: config.json entries set by a flag not named after them (the rest: "--" + their name, or
+#: none for the flight model's constants)
+FLAG_OF = {
+    "flight.yaw": "--yaw",
+    "flight.max_steps": "--max-steps",
+    **dict.fromkeys(
+        ("depth_kind", "model_name", "depth_range", "clamp", "nominal_displacement_m"), "--depth"
+    ),
+    **dict.fromkeys(("constant_depth_m", "constant_rule"), "--constant-depth"),
+}
+
+
+def _flat(config: dict, prefix: str = "") -> dict:
+    """``{"flight": {"yaw": ...}}`` -> ``{"flight.yaw": ...}``."""
+    flat = {}
+    for k, v in config.items():
+        if isinstance(v, dict):
+            flat.update(_flat(v, f"{prefix}{k}."))
+        else:
+            flat[f"{prefix}{k}"] = v
+    return flat
+
+
 def _check_resumed(out: Path, earlier: dict, config: dict) -> None:
-    """--resume continues a run of the same settings (but RESUMABLE's)."""
-    changed = [k for k in config if k not in RESUMABLE and earlier.get(k) != config[k]]
-    if changed:
-        raise UserError(
-            f"--resume: '{out}' was started with other settings ({', '.join(changed)}: "
-            f"{earlier.get(changed[0])!r}, now {config[changed[0]]!r})"
-        )
+    """--resume continues a run of the same settings (but RESUMABLE's): the first one that
+    differs is named by its flag (or its config.json name) with both values."""
+    then, now = _flat(earlier), _flat(config)
+    keys = [*now, *(k for k in then if k not in now)]  # config.json's order: --depth first
+    changed = [k for k in keys if k not in RESUMABLE and then.get(k) != now.get(k)]
+    if not changed:
+        return
+    key = changed[0]
+    if key in FLAG_OF or "." not in key:
+        name = FLAG_OF.get(key, "--" + key.replace("_", "-"))
+        detail = "" if name == "--" + key.replace("_", "-") else f" ({key})"
+    else:  # a constant of the flight model: no flag changes it
+        name, detail = f"'{key}'", " (a constant of this version's flight model)"
+    raise UserError(
+        f"--resume: '{out}' was flown with {name}{detail} {then.get(key)!r}, not "
+        f"{now.get(key)!r}; give the run's value or start a new --out"
+    )
 
 
 def _fly(out: Path, config: dict, source, flight, new: bool, progress: bool) -> dict:
