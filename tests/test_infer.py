@@ -11,6 +11,9 @@ from __future__ import annotations
 import csv
 import json
 import math
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import cv2
@@ -289,6 +292,19 @@ def test_garbled_video_gives_both_frame_counts(files, tmp_path):
     assert f"decodes {GARBLED_AT} of the {FRAMES} frames" in proc.stderr
     assert f"(frame {GARBLED_AT} fails)" in proc.stderr
     assert not out.exists() and not list(tmp_path.glob(".out.tmp-*"))
+
+
+def test_garbled_video_error_is_the_only_line_on_stderr(files, tmp_path):
+    """End to end (FFmpeg writes to file descriptor 2 itself, which CliRunner cannot see)."""
+    env = {k: v for k, v in os.environ.items() if k != "OPENCV_FFMPEG_LOGLEVEL"}
+    proc = subprocess.run(
+        [sys.executable, "-m", "benchmark.cli", "infer", "--ckpt", files["ckpt"], "--input",
+         files["garbled"], "--speed", "3", "--out", tmp_path / "out", "--quiet"],
+        capture_output=True, text=True, env=env, timeout=300,
+    )  # fmt: skip
+    assert proc.returncode == 2
+    assert proc.stderr.splitlines() == [proc.stderr.strip()], proc.stderr
+    assert proc.stderr.startswith("stillbox-bench: error: --input:")
 
 
 def test_out_must_be_new_or_empty(files, tmp_path):

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import csv
 import math
+import os
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -27,6 +28,10 @@ import numpy as np
 from stillbox_gen.camera import focal_from_fov
 
 from ..core.errors import FieldError, Ref  # noqa: E402
+
+# FFmpeg's own messages about a broken video ("Sample size ... is too large") would precede the
+# one-line error that names the file; OpenCV reads this when it opens a video (user's value kept)
+os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")  # AV_LOG_QUIET
 
 #: image files read from a folder of frames (case-insensitive), in name order
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
