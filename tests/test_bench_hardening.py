@@ -606,3 +606,17 @@ def test_report_of_an_unreadable_summary_or_pixels_is_one_line(tmp_path):
         assert_bench_error(proc, str(bad / name))
         assert not marker.exists(), "pixels.npz was unpickled"
         assert not list(tmp_path.glob("cmp2*")), name
+
+
+def test_compare_reusing_an_unreadable_run_is_one_line(default_dataset, tmp_path):
+    """compare reads a finished run of its --out as report does: the same one line."""
+    summary = {"model": "constant", "metrics": {"mae": 1.0}}
+    pixels = {"foe_distance": np.ones(3), "abs_err": np.ones(3)}
+    run = tmp_path / "cmp" / "constant"
+    for name, content in [("summary.json", b'{"model": "m", "metr'), ("pixels.npz", b"zip?")]:
+        runfolder.write_report(run, summary, "", [], pixels)
+        (run / name).write_bytes(content)
+        proc = bench("compare", "--data", default_dataset, "--models", "constant",
+                     "--out", tmp_path / "cmp", check=False)  # fmt: skip
+        assert_bench_error(proc, str(run / name))
+        assert not (tmp_path / "cmp" / "comparison.md").exists()

@@ -256,14 +256,20 @@ def eval_cmd(
 def report(runs: tuple[Path, ...], out: Path) -> None:
     """One comparison table (markdown + CSV) of several runs' summary.json, and one figure of
     error vs distance to the focus of expansion with every run on it."""
-    from ..supervised.report import write_comparison
-
     missing = [str(r) for r in runs if not has_summary(r)]
     if missing:
         raise UserError(f"RUNS: no {SUMMARY_JSON} in {', '.join(missing)}")
+    click.echo(_comparison(list(runs), out))
+
+
+def _comparison(runs: list[Path], out: Path) -> str:
+    """report.write_comparison, shared by report and compare: an unreadable summary.json or
+    pixels.npz, or an --out not made, is one line (UserError), never a traceback."""
+    from ..supervised.report import write_comparison
+
     try:
-        click.echo(write_comparison(list(runs), out))
-    except ValueError as e:  # an unreadable summary.json or pixels.npz, or an --out not made
+        return write_comparison(runs, out)
+    except ValueError as e:
         raise user_error(e) from None
 
 
@@ -306,9 +312,7 @@ def compare(data: Path, names: str, out: Path | None, **o) -> None:
             click.echo(f"{name}: running into {run_dir}")
             _run_one(name, data, run_dir, settings)
         runs.append(run_dir)
-    from ..supervised.report import write_comparison
-
-    click.echo(write_comparison(runs, out / COMPARISON))
+    click.echo(_comparison(runs, out / COMPARISON))
     click.echo(f"comparison in {comparison_paths(out / COMPARISON)['md']}")
 
 
