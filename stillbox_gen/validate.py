@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 from pathlib import Path
 
 import cv2
@@ -354,8 +355,16 @@ def validate_dataset(root: Path, check_pixels: bool = True) -> tuple[list[str], 
     n_chunks = layout.chunk_count(n_scenes)
     expected_dirs = {str(c) for c in range(n_chunks)}
     root_files = {DATASET_JSON, MANIFEST, *layout.STATS_FILES, layout.LOCK_FILE}
+    linked = set()  # entries that are links: named by lstat, never followed
     for p in sorted(root.iterdir()):
-        if p.is_dir() and p.name not in expected_dirs:
+        if p.is_symlink():
+            linked.add(p.name)
+            suffix = "/" if p.name in expected_dirs else ""
+            target = os.readlink(p)
+            problems.append(
+                f"{p.name}{suffix}: a symbolic link (to '{target}'); a dataset holds no links"
+            )
+        elif p.is_dir() and p.name not in expected_dirs:
             problems.append(
                 f"{p.name}/: unexpected folder (loaders read every sub-folder as a chunk)"
             )
@@ -365,6 +374,8 @@ def validate_dataset(root: Path, check_pixels: bool = True) -> tuple[list[str], 
     records: list[dict] = []
     unchecked: list[int] = []  # scenes whose record holds no checksums (older datasets)
     for c in range(n_chunks):
+        if str(c) in linked:
+            continue
         try:
             meta_path = formats.resolve_inside(root, f"{c}/{layout.METADATA_JSON}", f"chunk {c}")
             meta = json.loads(meta_path.read_text())

@@ -488,3 +488,16 @@ def test_a_config_written_before_render_light_tree_keeps_its_meaning_and_fingerp
     assert cfg.render.light_tree is True
     assert cfg.to_dict() == old and cfg.fingerprint() != new.fingerprint()
     assert config.from_dict(new.to_dict()) == new
+
+
+def test_validate_names_a_chunk_folder_that_is_a_symlink_and_reads_nothing_through_it(ds, tmp_path):
+    """A chunk folder replaced by a link to a copy outside: the link itself is the first problem
+    (found by lstat), and nothing of the outside folder is listed or read."""
+    outside = tmp_path / "elsewhere"
+    shutil.move(ds / "0", outside)
+    os.symlink(outside, ds / "0")
+    (outside / "extra.txt").write_text("outside")  # would be a stray file if it were listed
+    rc, lines = _validate(ds)
+    assert rc == 1
+    assert lines[0] == f"0/: a symbolic link (to '{outside}'); a dataset holds no links", lines
+    assert not any("extra.txt" in line for line in lines), lines
