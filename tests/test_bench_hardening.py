@@ -267,16 +267,21 @@ def test_own_checkpoints_load_with_weights_only(uninterrupted):
 
 
 @pytest.mark.render
-@pytest.mark.parametrize("stop_at", [3, 7], ids=["mid-epoch", "last-step-of-epoch"])
+@pytest.mark.parametrize(
+    ("stop_at", "sig"),
+    [(3, signal.SIGINT), (7, signal.SIGINT), (3, signal.SIGTERM)],
+    ids=["mid-epoch", "last-step-of-epoch", "SIGTERM-mid-epoch"],
+)
 def test_resumed_epoch_logs_the_uninterrupted_train_loss(
     tiny_dataset,
     uninterrupted,
     tmp_path,
     monkeypatch,
     stop_at,
+    sig,
 ):
-    """Ctrl-C after step ``stop_at`` (7 steps per epoch), then --resume: metrics.csv and
-    steps.csv equal those of an uninterrupted run."""
+    """Ctrl-C (or SIGTERM, as `timeout` and job schedulers send) after step ``stop_at`` (7 steps
+    per epoch), then --resume: metrics.csv and steps.csv equal those of an uninterrupted run."""
     expected = _rows(uninterrupted / "metrics.csv")
     assert [int(r["step"]) for r in expected] == [7, 14]
     cfg = _config(tiny_dataset, tmp_path / "run")
@@ -285,7 +290,7 @@ def test_resumed_epoch_logs_the_uninterrupted_train_loss(
     def loss_then_ctrl_c(*args):
         calls.append(1)
         if len(calls) == stop_at:
-            signal.raise_signal(signal.SIGINT)
+            signal.raise_signal(sig)
         return loss(*args)
 
     monkeypatch.setattr(train, "multiscale_loss", loss_then_ctrl_c)

@@ -18,7 +18,6 @@ from __future__ import annotations
 import math
 import os
 import platform
-import signal
 import time
 from collections.abc import Callable
 from dataclasses import asdict
@@ -46,6 +45,7 @@ from ..core.data import (
 )
 from ..core.device import resolve_device
 from ..core.errors import FieldError, Ref
+from ..core.stopping import stop_requests
 from . import evaluate
 
 
@@ -536,13 +536,10 @@ class Trainer:
         self.checkpoint("last")
 
     def fit(self) -> None:
-        """Train to ``total_steps``; Ctrl-C stops at the next step boundary, saving 'last'."""
-        stop = []
-        previous = signal.signal(signal.SIGINT, lambda *_: stop.append(True))
-        try:
+        """Train to ``total_steps``; Ctrl-C or SIGTERM stops at the next step boundary, saving
+        'last' (then KeyboardInterrupt)."""
+        with stop_requests() as stop:
             self._fit(stop)
-        finally:
-            signal.signal(signal.SIGINT, previous)
         if stop:
             raise KeyboardInterrupt
 

@@ -29,7 +29,6 @@ network of the last checkpoint. Both are written at every ``ckpt_every`` steps a
 from __future__ import annotations
 
 import math
-import signal
 import time
 from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
@@ -46,6 +45,7 @@ from ..core.data import EpochBatches, EpochSampler
 from ..core.errors import FieldError, Ref
 from ..core.posenet import DepthPoseNet
 from ..core.registry import UNSUPERVISED_RECIPE
+from ..core.stopping import stop_requests
 from ..supervised.train import NonFiniteLoss, environment, make_optimizer
 from ..video.infer import InferOptions, prepare
 from .footage_sequences import describe_stretches, footage_store, frame_stride
@@ -359,16 +359,14 @@ class Finetuner:
     # ------------------------------------------------------------ training
 
     def fit(self) -> dict:
-        """Train to ``steps`` (Ctrl-C: stop at the next step boundary, saving both checkpoints,
-        then KeyboardInterrupt); returns the summary (:func:`describe`)."""
+        """Train to ``steps`` (Ctrl-C or SIGTERM: stop at the next step boundary, saving both
+        checkpoints, then KeyboardInterrupt); returns the summary (:func:`describe`)."""
         self._start_folder()
-        stop: list[bool] = []
-        previous = signal.signal(signal.SIGINT, lambda *_: stop.append(True))
         start, first = time.perf_counter(), self.state["global_step"]
         try:
-            losses = self._loop(stop)
+            with stop_requests() as stop:
+                losses = self._loop(stop)
         finally:
-            signal.signal(signal.SIGINT, previous)
             self.tb.close()
         self.save()
         if stop:
