@@ -308,6 +308,21 @@ def test_resumed_epoch_logs_the_uninterrupted_train_loss(
     assert [int(r["step"]) for r in steps] == list(range(1, 15))
 
 
+def test_run_resume_keeps_max_steps_and_intervals_unless_given_again(tiny_dataset, tmp_path):
+    """--max-steps, --log-every and --ckpt-every left out of --resume are the run's (the
+    defaults would log every 10th step and train to the end of the epochs)."""
+    out = tmp_path / "run"
+    common = ("depthnet-tiny", "--data", tiny_dataset, "--out", out, "--batch-size", 4,
+              "--epochs", 2, "--threads", 1, "--quiet")  # fmt: skip
+    bench("run", *common, "--max-steps", 2, "--log-every", 1, "--ckpt-every", 1)
+    bench("run", *common, "--resume", "--max-steps", 4)
+    assert [int(r["step"]) for r in _rows(out / "steps.csv")] == [1, 2, 3, 4]
+    config = json.loads((out / "config.json").read_text())
+    assert (config["max_steps"], config["log_every"], config["ckpt_every"]) == (4, 1, 1)
+    bench("run", *common, "--resume")  # the run's 4 steps: nothing more is trained
+    assert torch.load(out / "checkpoints" / "last.pt")["state"]["global_step"] == 4
+
+
 def _tb_steps(folder: Path, tag: str) -> tuple[list[int], list[int]]:
     """Steps of ``tag`` as TensorBoard's EventAccumulator shows them, and as the event files hold
     them (every record of every file, in file order: what a reader without purging sees)."""

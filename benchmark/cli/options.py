@@ -11,7 +11,7 @@ import click
 from stillbox_gen.conventions import default_root
 
 from ..core import registry
-from ..core.config import FLAGGED, check_settings
+from ..core.config import FLAGGED, KEPT_ON_RESUME, check_settings
 from ..core.errors import FieldError
 from ..core.registry import CLAMPED_RECIPE, DEPTH_RECIPE
 from .limits import FLOAT, INT
@@ -113,6 +113,10 @@ def setting_option(name: str, command: str):
     if field_.metadata["recipe"]:
         depth, clamped = (_shown(getattr(r, name)) for r in (DEPTH_RECIPE, CLAMPED_RECIPE))
         text = text.format(depth=depth, clamped=clamped)
+    elif name in KEPT_ON_RESUME:  # None: the default, or the resumed run's value
+        shown = "none" if field_.default is None else _shown(field_.default)
+        resumed = "; --resume: the run's" if command == "run" else ""
+        text += f"  [default: {shown}{resumed}]"
     elif flag.kind != "flag":
         kw.update(default=field_.default, show_default=field_.default is not None)
     return click.option(flag.decl, name, help=text, **kw)

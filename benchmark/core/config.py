@@ -81,6 +81,11 @@ POSE_MODES = ("translation", "orientation", "6dof")
 MODELS_DEFAULT = "  [default: model's]"  # a recipe field's default in compare's help
 
 
+#: TrainConfig fields a resumed run takes from its checkpoint's config unless given again (they
+#: may change: --max-steps 4000 continues a run stopped by --max-steps 2000)
+KEPT_ON_RESUME = ("max_steps", "ckpt_every", "log_every")
+
+
 @dataclass
 class TrainConfig:
     """Everything a training run depends on.

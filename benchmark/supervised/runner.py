@@ -23,7 +23,7 @@ from stillbox_gen.lock import folder_lock
 
 from ..core import registry, runfolder
 from ..core.checkpoint import load_checkpoint, load_weights, source_error
-from ..core.config import EVAL_BATCH_SIZE, TrainConfig, default
+from ..core.config import EVAL_BATCH_SIZE, KEPT_ON_RESUME, TrainConfig, default
 from ..core.contract import load_user_model
 from ..core.data import (
     FrameStore,
@@ -349,12 +349,15 @@ def train_and_score(cfg: TrainConfig) -> dict | None:
 
 def train_config(model: str, data: Path, out: Path, **overrides) -> TrainConfig:
     """The model's registry recipe (resuming: the settings ``out``'s last checkpoint was trained
-    with, train.RESUMED_FIELDS), then ``overrides`` (None values ignored)."""
+    with, train.RESUMED_FIELDS and config.KEPT_ON_RESUME), then ``overrides`` (None values
+    ignored)."""
     recipe = dataclasses.asdict(registry.MODELS[model].recipe)
     cfg = TrainConfig(model=model, data=str(data), out=str(out), **recipe)
     if overrides.get("resume"):
         last = load_checkpoint(runfolder.checkpoint_path(out, "last"), "resume")
-        cfg = dataclasses.replace(cfg, **resumed_settings(last))
+        config = last.get("config") if isinstance(last.get("config"), dict) else {}
+        kept = {k: config[k] for k in KEPT_ON_RESUME if k in config}
+        cfg = dataclasses.replace(cfg, **resumed_settings(last), **kept)
     return dataclasses.replace(cfg, **{k: v for k, v in overrides.items() if v is not None})
 
 
