@@ -217,10 +217,11 @@ def test_eval_wants_one_method(tiny_dataset, extra, words):
 def test_a_report_inside_the_data_or_the_predictions_is_refused(tiny_dataset, tmp_path):
     folder = tmp_path / "p"
     _good(tiny_dataset, folder)
-    for out, flag in ((tiny_dataset / "report", "--data"), (folder / "report", "--predictions")):
+    cases = ((tiny_dataset / "report", "inside the dataset"), (folder / "report", "--predictions"))
+    for out, words in cases:
         proc = bench("eval", "--predictions", folder, "--data", tiny_dataset, "--out", out,
                      check=False)  # fmt: skip
-        _assert_one_line(proc, "--out", flag)
+        _assert_one_line(proc, "--out", words)
         assert not out.exists()
 
 
