@@ -1,0 +1,104 @@
+"""The numbers quoted in the chapter-3 results pages are those of their committed outputs: each
+table row of docs/results/scaling and docs/results/reference is read back from the page and
+compared, at the page's precision, with results.csv, fit.json and the eval summaries beside it."""
+
+from __future__ import annotations
+
+import csv
+import json
+import re
+from pathlib import Path
+
+import pytest
+
+RESULTS = Path(__file__).resolve().parents[1] / "docs" / "results"
+
+
+def _rows(page: Path, first_cell: str) -> list[list[str]]:
+    """Cells of the markdown table rows of ``page`` whose first cell matches ``first_cell``."""
+    rows = []
+    for line in page.read_text().splitlines():
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        if line.startswith("|") and re.fullmatch(first_cell, cells[0]):
+            rows.append(cells)
+    return rows
+
+
+def _csv(path: Path) -> list[dict]:
+    return list(csv.DictReader(path.read_text().splitlines()))
+
+
+def _numbers(text: str) -> list[float]:
+    """Every decimal number of a cell (signed; the pages' minus is U+2212), thousands separators
+    and bold marks removed."""
+    plain = text.replace(",", "").replace("*", "").replace("\u2212", "-")
+    return [float(v) for v in re.findall(r"(?<![\d.])-?\d+\.\d+", plain)]  # 6.72-10.15: a range
+
+
+def _shown(value: float, like: float) -> float:
+    """``value`` rounded to the decimals ``like`` was printed with (2 unless it has 3)."""
+    decimals = len(repr(like).split(".")[1]) if "." in repr(like) else 0
+    return round(value, max(decimals, 2))
+
+
+def _agree(quoted: list[float], measured: list[float]) -> None:
+    assert len(quoted) == len(measured), (quoted, measured)
+    for q, m in zip(quoted, measured, strict=True):
+        assert q == pytest.approx(_shown(m, q), abs=1e-9), (quoted, measured)
+
+
+def test_scaling_table_and_fits_match_results_csv_and_fit_json():
+    page = RESULTS / "scaling" / "README.md"
+    runs = {int(r["samples"]): r for r in _csv(RESULTS / "scaling" / "results.csv")}
+    rows = _rows(page, r"[\d,]+")
+    assert [int(r[0].replace(",", "")) for r in rows] == sorted(runs)
+    for cells in rows:
+        run = runs[int(cells[0].replace(",", ""))]
+        measured = [float(run[k]) for k in ("mae", "mre", "mle", "p1.25")]
+        _agree([float(c) for c in cells[1:5]], measured)
+    fits = json.loads((RESULTS / "scaling" / "fit.json").read_text())["fits"]
+    for cells in _rows(page, r"power law.*"):
+        fit = fits[
+            "power law" if "floor" not in cells[0] else next(k for k in fits if "floor" in k)
+        ]
+        at = fit["mae_at_target"]
+        measured = [fit["slope"], fit["sigma"], at["fit"], at["low"], at["high"]]
+        _agree(_numbers(" ".join(cells[1:])), measured)
+
+
+def test_reference_300k_table_matches_its_results_csv():
+    page = RESULTS / "reference" / "README.md"
+    table = page.read_text().split("## 300 K samples")[1].split("Second seed")[0]
+    scored = {
+        (r["code"], int(r["seed"]), int(r["epoch"])): r
+        for r in _csv(RESULTS / "reference" / "schedule-171" / "results.csv")
+    }
+    rows = [
+        line for line in table.splitlines() if re.match(r"\| \d+ \| (\*\*)?[\d,]+(\*\*)? \|", line)
+    ]
+    assert len(rows) == 7
+    for line in rows:
+        cells = [c.strip() for c in line.strip("|").split("|")]
+        epoch = int(cells[0])
+        for code, cell in (("author", cells[2]), ("ours", cells[3])):
+            r = scored[(code, 0, epoch)]
+            measured = [float(r[k]) for k in ("mae", "mre", "mle", "depth_error")]
+            _agree(_numbers(cell), measured)
+
+
+def test_reference_initialisation_table_matches_its_summaries():
+    page = RESULTS / "reference" / "README.md"
+    section = page.read_text().split("## Initialisation")[1].split("\n## ")[0]
+    for line in section.splitlines():
+        match = re.match(r"\| ([\d,]+) \|", line)
+        if not match:
+            continue
+        samples = int(match.group(1).replace(",", ""))
+        xavier = line.strip("|").split("|")[3]
+        measured = []
+        for seed in (0, 1):
+            path = RESULTS / "reference" / "init-xavier" / f"xavier-s{seed}-e{samples // 5472}"
+            s = json.loads(path.with_suffix(".summary.json").read_text())
+            assert s["training_state"]["global_step"] * 32 == samples
+            measured += [s["metrics"]["mae"], s["metrics"]["mle"]]
+        _agree(_numbers(xavier), measured)
