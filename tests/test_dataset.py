@@ -149,7 +149,8 @@ def test_readme_example_loads_pairs(default_dataset):
     assert float(batch["images"].min()) >= 0 and float(batch["images"].max()) <= 1
     assert float(batch["depth"].min()) > 0 and float(batch["depth"].max()) <= 100.0
 
-    item, (scene, i) = pairs[0], pairs.items[0]
+    item, (k, i) = pairs[0], pairs.items[0]
+    scene = pairs.scenes[k]
     frames = np.concatenate([scene.load_rgb(i), scene.load_rgb(i + 3)], axis=-1)
     np.testing.assert_allclose(item["images"].numpy(), frames.transpose(2, 0, 1) / 255, atol=1e-7)
     np.testing.assert_array_equal(item["depth"].numpy(), np.clip(scene.load_depth(i + 3), 0, 100))
