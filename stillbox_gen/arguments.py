@@ -4,6 +4,8 @@ parser raises ConfigError naming its flag, in one line. The benchmark may import
 
 from __future__ import annotations
 
+import os
+import tempfile
 from pathlib import Path
 
 from .errors import ConfigError
@@ -53,3 +55,19 @@ def check_out_folder(
     dataset = None if inside_dataset else enclosing_dataset(out)
     if dataset is not None:
         raise error(f"{flag}: '{out}' is inside the dataset '{dataset}'; write elsewhere")
+    if problem := unwritable(out):
+        raise error(f"{flag}: {problem}")
+
+
+def unwritable(out: Path) -> str | None:
+    """Why the folder ``out`` cannot be written into (created first when missing), found by
+    making and removing a folder where it would be made (permissions alone do not tell: root
+    may not write under /proc); None when it can."""
+    existing = next((p for p in (out, *out.absolute().parents) if p.exists()), None)
+    if existing is None or not existing.is_dir():
+        return f"cannot create '{out}' ('{existing}' is not a folder)"
+    try:
+        os.rmdir(tempfile.mkdtemp(prefix=".stillbox-probe-", dir=existing))
+    except OSError as e:
+        return f"cannot create '{out}' (cannot write into '{existing}': {e.strerror or e})"
+    return None

@@ -76,3 +76,13 @@ def test_generating_into_a_folder_inside_a_dataset_is_refused(inputs):
     proc = invoke_cli("--scenes", 1, "--res", 64, "--out", dataset / "nested")
     assert_user_error(proc, "--out", "inside the dataset")
     assert _files(dataset) == before
+
+
+@pytest.mark.parametrize("command", sorted(ARGS))
+def test_bench_commands_refuse_an_out_that_cannot_be_made_before_any_work(command, inputs):
+    """/proc refuses a new folder even to root, whose permissions say it may write there."""
+    args = [a.format(**inputs) for a in ARGS[command]]
+    out = Path("/proc/stillbox-none") / ("net.onnx" if command == "export" else "out")
+    proc = invoke_main(cli.main, command, *args, "--out", out)
+    assert_bench_error(proc, "--out", "/proc")
+    assert "Traceback" not in proc.stderr and proc.stdout == ""

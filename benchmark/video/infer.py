@@ -30,6 +30,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from stillbox_gen.arguments import unwritable
 from stillbox_gen.conventions import MAX_DEPTH
 from stillbox_gen.formats import temp_path
 from stillbox_gen.layout import enclosing_dataset
@@ -144,6 +145,8 @@ def check_options(o: InferOptions, out: bool = True) -> None:
     dataset = enclosing_dataset(o.out) if out else None
     if dataset is not None:
         raise FieldError("out", f"'{o.out}' is inside the dataset '{dataset}'; write elsewhere")
+    if out and (problem := unwritable(o.out)):
+        raise FieldError("out", problem)
 
 
 def _motion(o: InferOptions, source: footage.FrameSource) -> tuple[np.ndarray, float]:
