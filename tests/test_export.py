@@ -150,6 +150,7 @@ def test_bad_outputs_and_inputs_are_refused_with_nothing_written(files, tmp_path
         (files["ckpt"], "onnx", tmp_path / "taken.onnx", ("--out", "exists")),
         (files["ckpt"], "onnx", tmp_path / "missing" / "net.onnx", ("--out", "no such folder")),
         (files["ckpt"], "onnx", dataset / "net.onnx", ("--out", "inside the dataset")),
+        (files["ckpt"], "onnx", Path("/proc/net.onnx"), ("--out", "cannot write into '/proc'")),
         (files["flow"], "onnx", tmp_path / "flow.onnx", ("--ckpt", "not depth")),
         (tmp_path / "none.pt", "torchscript", tmp_path / "none2.pt", ("--ckpt",)),
     ]

@@ -26,6 +26,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from stillbox_gen.arguments import unwritable
 from stillbox_gen.formats import temp_path
 
 from ..core.checkpoint import first_line, source_error
@@ -103,8 +104,8 @@ def check_out(out: Path, fmt: str) -> None:
         raise FieldError("out", f"'{out}' exists; give a new file (nothing is overwritten)")
     if not out.parent.is_dir():
         raise FieldError("out", f"no such folder '{out.parent}'")
-    if not os.access(out.parent, os.W_OK):
-        raise FieldError("out", f"folder '{out.parent}' is not writable")
+    if problem := unwritable(out.parent):  # e.g. /proc, whose permissions say root may write
+        raise FieldError("out", problem)
 
 
 def export(ckpt: Path, fmt: str, out: Path) -> dict:
