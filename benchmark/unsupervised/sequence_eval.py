@@ -16,7 +16,12 @@ to 100 m, per image, then the mean over images).
   displacement, × ‖t_pair‖ / d0 (the "P" scale). Beside it, "P (fixed pair)": the same with the
   reference whose measured displacement is closest to d0, so that a reader sees how much of a
   score is the thesis' rule. A network with a narrower depth range has its
-  outputs clamped to it first (registry.output_clamp), as ``eval`` does.
+  outputs clamped to it first (registry.output_clamp), as ``eval`` does. The rule reads the
+  mean of what the network outputs, saturated or not: a perfect DepthNet scores zero with
+  either rule, but one that saturates at 100 m at d0 (the supervised recipe clips its targets
+  there) is, on near scenes, kept on a pair shorter than d0 whose far pixels saturate (MAE
+  about 13 m on the tests' rotating scene; "P (fixed pair)": zero):
+  tests/test_sequence_protocol.py.
 - SFMLearner (``sfmlearner*``) reads t alone; its scale-free depth is put in metres by
   benchmark.unsupervised.scaling: "P", the measured displacement over PoseNet's between the
   window's first and last frames (the longest baseline of the window: our choice, the thesis
