@@ -70,7 +70,7 @@ def test_fixed_scene_is_the_same_for_every_index_and_seed(name):
 
 
 def test_flower_layout_follows_the_thesis_distances():
-    """A disc facing the middle camera at 2 m on its axis; background plane at 10 m; the walls
+    """A disc facing the middle camera at 1 m on its axis; background plane at 10 m; the walls
     beyond the far clip (the box is never seen)."""
     spec = scene.sample_scene(toy("flower"), 0)
     disc, wall = spec.primitives
@@ -141,8 +141,8 @@ def test_plane_distance_and_mesh():
 
 
 def test_camera_path_into_a_fixed_object_is_refused(tmp_path):
-    """A path through the flower disc (forward 2.5 m per frame: the disc is 2 m before the
-    middle frame, so the last frame is 0.5 m past it) is a one-line error before any file."""
+    """A path through the flower disc (forward 2.5 m per frame: the disc is 1 m before the
+    middle frame, so the last frame is 1.5 m past it) is a one-line error before any file."""
     cfg = toy("flower", camera={"direction": (0.0, 0.0, 1.0), "displacement": 2.5})
     with pytest.raises(ConfigError, match="fixed scene 'flower'.*camera.displacement"):
         scene.sample_scene(cfg, 0)
@@ -239,7 +239,7 @@ def _depth(path: Path, frame: int) -> tuple[np.ndarray, np.ndarray]:
 
 @pytest.mark.render
 def test_flower_moves_as_the_displacement_says(rendered):
-    """The disc (depth 2 m) shifts f * 0.1 / 2 = 5 px left and up per frame, the background
+    """The disc (depth 1 m) shifts f * 0.1 / 1 = 10 px left and up per frame, the background
     (10 m) keeps its depth; the background hidden by the disc in frame t-1 and in frame t+1
     are different pixels of frame t (thesis Fig. 4.12)."""
     s = dataset.Dataset(rendered["flower"]).scene(0)
@@ -254,7 +254,7 @@ def test_flower_moves_as_the_displacement_says(rendered):
     shift = f * 0.1 / scene.FLOWER_DISTANCE
     np.testing.assert_allclose(np.diff(centroids, axis=0), -shift, atol=0.02)
     np.testing.assert_allclose(centroids[1], [s.K[0, 2], s.K[1, 2]], atol=0.02)
-    area = masks[1].sum()  # the disc: a 32-sided polygon of radius f * 1.35 / 2 = 67.5 px
+    area = masks[1].sum()  # the disc: a 32-sided polygon of radius f * 0.565 / 1 = 56.5 px
     radius = f * scene.FLOWER_DIAMETER / 2 / scene.FLOWER_DISTANCE
     assert area == pytest.approx(16 * radius**2 * np.sin(2 * np.pi / 32), rel=0.005)
     hidden_before, hidden_after = masks[0] & ~masks[1], masks[2] & ~masks[1]
