@@ -486,3 +486,50 @@ def test_a_rendered_pair_warped_with_its_true_depth_and_pose(tiny_dataset):
     err, before = error(scene.relative_pose(target, reference))
     wrong, _ = error(scene.relative_pose(reference, target))
     assert err < 0.6 * before and err < 0.5 * wrong and err < 0.04, (err, before, wrong)
+
+
+# ---------------------------------------------------------------- the fast SSIM
+
+
+@pytest.mark.parametrize("shape", [(2, 3, 7, 9), (3, 2, 4, 3, 6, 5)])
+def test_gaussian_blur_is_reflect_padding_and_a_separable_convolution(shape):
+    """Against torch's reflect padding and a 2-D convolution with the outer product of the taps
+    (an independent route), and its hand-written backward against autograd's numerical check."""
+    g = torch.Generator().manual_seed(0)
+    x = torch.rand(shape, generator=g, dtype=DT)
+    for taps in (rp.ssim_taps(x), torch.tensor([0.1, 0.2, 0.4, 0.2, 0.1], dtype=DT)):
+        half = len(taps) // 2
+        flat = x.reshape(-1, 1, *shape[-2:])
+        padded = torch.nn.functional.pad(flat, (half,) * 4, mode="reflect")
+        theirs = torch.nn.functional.conv2d(padded, torch.outer(taps, taps)[None, None])
+        torch.testing.assert_close(rp.gaussian_blur(x, taps), theirs.view(shape))
+        leaf = x.clone().requires_grad_()
+        assert torch.autograd.gradcheck(lambda v, t=taps: rp.gaussian_blur(v, t), (leaf,))
+
+
+def test_dssim_map_is_kornias_with_one_target_for_many_references():
+    """The broadcast target (its statistics computed once) gives kornia's map and gradients,
+    which repeat the target for every reference; float32 within 1e-5 (the order of the sums
+    differs: rounding reaches 1.3e-6 on these random images)."""
+    g = torch.Generator().manual_seed(1)
+    target = torch.rand(1, 2, 1, 3, 12, 10, generator=g)
+    warped = torch.rand(5, 2, 4, 3, 12, 10, generator=g).requires_grad_()
+    weights = torch.rand(5, 2, 4, 1, 12, 10, generator=g)
+    ours = rp.dssim_map(target, warped)
+    (ours * weights).sum().backward()
+    ours_grad, warped.grad = warped.grad, None
+    flat = warped.reshape(-1, 3, 12, 10)
+    theirs = rp.kornia_dssim_map(target.expand_as(warped).reshape(-1, 3, 12, 10), flat)
+    (theirs.view_as(ours) * weights).sum().backward()
+    torch.testing.assert_close(ours, theirs.view_as(ours), rtol=0, atol=1e-5)
+    torch.testing.assert_close(ours_grad, warped.grad, rtol=0, atol=1e-5)
+
+
+def test_dssim_hand_backward_matches_autograd_in_double():
+    g = torch.Generator().manual_seed(2)
+    target = torch.rand(1, 3, 7, 8, generator=g, dtype=DT)
+    warped = torch.rand(4, 3, 7, 8, generator=g, dtype=DT).requires_grad_()
+    assert torch.autograd.gradcheck(lambda w: rp.dssim_map(target, w), (warped,))
+    # a target that needs a gradient goes through autograd, the same values
+    t = target.clone().requires_grad_()
+    torch.testing.assert_close(rp.dssim_map(t, warped), rp.dssim_map(target, warped))

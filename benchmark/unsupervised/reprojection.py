@@ -286,7 +286,8 @@ class _RayProjection(torch.autograd.Function):
 
 
 def l1_map(target: torch.Tensor, warped: torch.Tensor) -> torch.Tensor:
-    """``|I_t − Ĩ|`` averaged over channels, ``(B, 1, H, W)``; ``target`` may have batch 1."""
+    """``|I_t − Ĩ|`` averaged over channels (dim −3), ``(…, 1, H, W)``; ``target`` broadcasts
+    against ``warped`` (e.g. one target for several references)."""
     return _L1Map.apply(target, warped)
 
 
@@ -299,27 +300,156 @@ class _L1Map(torch.autograd.Function):
     def forward(ctx, target, warped):  # noqa: ANN001, ANN205 (autograd's signature)
         diff = warped - target
         ctx.save_for_backward(diff.sign())
-        ctx.target_shape = target.shape
-        return diff.abs().mean(1, keepdim=True)
+        ctx.target_shape, ctx.warped_shape = target.shape, warped.shape
+        return diff.abs().mean(-3, keepdim=True)
 
     @staticmethod
     def backward(ctx, grad):  # noqa: ANN001, ANN205
         (sign,) = ctx.saved_tensors
-        grad_warped = sign * (grad / sign.shape[1])
+        grad_warped = sign * (grad / sign.shape[-3])
         grad_target = None
         if ctx.needs_input_grad[0]:
             grad_target = (-grad_warped).sum_to_size(ctx.target_shape)
-        return grad_target, grad_warped if ctx.needs_input_grad[1] else None
+        if ctx.needs_input_grad[1]:
+            return grad_target, grad_warped.sum_to_size(ctx.warped_shape)
+        return grad_target, None
+
+
+def gaussian_blur(x: torch.Tensor, taps: torch.Tensor) -> torch.Tensor:
+    """``x`` filtered by the separable window ``taps`` (odd length, symmetric, a constant) along
+    its last two dimensions, with reflect padding (``F.pad(mode="reflect")``'s: the border pixel
+    is not repeated), any leading dimensions. Shifted slices instead of a depthwise convolution,
+    with the backward pass by hand (:class:`_Blur`): on a CPU the convolution's backward pass
+    was most of an unsupervised step's time."""
+    return _Blur.apply(_Blur.apply(x, taps, -2), taps, -1)
+
+
+def _correlate(padded: torch.Tensor, taps: torch.Tensor, dim: int, n: int) -> torch.Tensor:
+    """``Σ_k taps[k]·padded[k : k + n]`` along ``dim`` (symmetric taps: pairs added first)."""
+    half = len(taps) // 2
+    out = taps[half] * padded.narrow(dim, half, n)
+    for k in range(half):
+        out = out + taps[k] * (padded.narrow(dim, k, n) + padded.narrow(dim, 2 * half - k, n))
+    return out
+
+
+class _Blur(torch.autograd.Function):
+    """One axis of :func:`gaussian_blur`: reflect padding by ``half`` then the correlation.
+    Backward: the same correlation of the gradient zero-padded by twice ``half`` (the
+    transpose of a symmetric window), then each padding pixel's share added back to the pixel
+    it mirrors (the transpose of reflect padding), without autograd's zero-filled slices."""
+
+    @staticmethod
+    def forward(ctx, x, taps, dim):  # noqa: ANN001, ANN205 (autograd's signature)
+        half, n = len(taps) // 2, x.shape[dim]
+        left, right = x.narrow(dim, 1, half).flip(dim), x.narrow(dim, n - 1 - half, half).flip(dim)
+        ctx.save_for_backward(taps)
+        ctx.dim = dim
+        return _correlate(torch.cat((left, x, right), dim), taps, dim, n)
+
+    @staticmethod
+    def backward(ctx, grad):  # noqa: ANN001, ANN205
+        (taps,) = ctx.saved_tensors
+        return _Blur.backward_of(grad, taps, ctx.dim), None, None
+
+    @staticmethod
+    def backward_of(grad: torch.Tensor, taps: torch.Tensor, dim: int) -> torch.Tensor:
+        """The transpose of one axis of the blur applied to ``grad``."""
+        half, n = len(taps) // 2, grad.shape[dim]
+        axis = dim % grad.dim()
+        zeros = grad.new_zeros(grad.shape[:axis] + (2 * half,) + grad.shape[axis + 1 :])
+        # the gradient of each padded pixel, x's (centre) and the mirrored ones (both ends)
+        padded = _correlate(torch.cat((zeros, grad, zeros), dim), taps, dim, n + 2 * half)
+        out = padded.narrow(dim, half, n).clone()
+        # the padding pixel j (left) mirrors x[half − j]; the right one j mirrors x[n − 2 − j]
+        out.narrow(dim, 1, half).add_(padded.narrow(dim, 0, half).flip(dim))
+        out.narrow(dim, n - 1 - half, half).add_(padded.narrow(dim, n + half, half).flip(dim))
+        return out
+
+
+def ssim_taps(like: torch.Tensor) -> torch.Tensor:
+    """SSIM's window: kornia's 1-D Gaussian of :data:`SSIM_WINDOW` taps, σ = 1.5, sum 1."""
+    return kornia.filters.get_gaussian_kernel1d(
+        SSIM_WINDOW, 1.5, device=like.device, dtype=like.dtype
+    ).reshape(-1)
 
 
 def dssim_map(target: torch.Tensor, warped: torch.Tensor) -> torch.Tensor:
-    """``(1 − SSIM) / 2`` clipped to ``[0, 1]``, averaged over channels, ``(B, 1, H, W)``.
+    """``(1 − SSIM) / 2`` clipped to ``[0, 1]``, averaged over channels (dim −3), ``(…, 1, H, W)``.
 
-    SSIM is kornia's (:func:`kornia.metrics.ssim`): Gaussian window of :data:`SSIM_WINDOW` pixels,
-    σ = 1.5, ``C1 = 0.01²``, ``C2 = 0.03²`` for images in ``[0, 1]``, reflect padding at the
-    border (the author's code pads with zeros). A pixel's window may reach pixels that a mask
-    drops (as in the author's code).
+    SSIM is kornia's (:func:`kornia.metrics.ssim`, same values to float rounding): Gaussian window
+    of :data:`SSIM_WINDOW` pixels, σ = 1.5, ``C1 = 0.01²``, ``C2 = 0.03²`` for images in ``[0, 1]``,
+    ε = 1e-12 in the denominator, reflect padding at the border (the author's code pads with
+    zeros). ``target`` broadcasts against ``warped``: its local mean and variance are computed
+    once for all the references it is compared with. A pixel's window may reach pixels that a
+    mask drops (as in the author's code). Differentiable in ``warped`` by hand
+    (:class:`_DSSIM`) when ``target`` needs no gradient (the training's frames), else by autograd.
     """
+    taps = ssim_taps(warped)
+    if target.requires_grad:
+        return _dssim(target, warped, taps)
+    return _DSSIM.apply(target, warped, taps)
+
+
+#: SSIM's constants for images in [0, 1] (kornia's: (0.01·L)², (0.03·L)², ε)
+SSIM_C1, SSIM_C2, SSIM_EPS = 0.01**2, 0.03**2, 1e-12
+
+
+def _ssim_terms(target, warped, taps):  # noqa: ANN001, ANN202
+    """SSIM's factors ``(a, b, c, d)``: SSIM = a·b / (c·d + ε), and the local means."""
+    mu_t, mu_w = gaussian_blur(target, taps), gaussian_blur(warped, taps)
+    var_t = gaussian_blur(target * target, taps) - mu_t * mu_t
+    var_w = gaussian_blur(warped * warped, taps) - mu_w * mu_w
+    cov = gaussian_blur(target * warped, taps) - mu_t * mu_w
+    a, b = 2.0 * mu_t * mu_w + SSIM_C1, 2.0 * cov + SSIM_C2
+    c, d = mu_t * mu_t + mu_w * mu_w + SSIM_C1, var_t + var_w + SSIM_C2
+    return a, b, c, d, mu_t, mu_w
+
+
+def _dssim(target, warped, taps):  # noqa: ANN001, ANN202
+    a, b, c, d, _, _ = _ssim_terms(target, warped, taps)
+    ssim = a * b / (c * d + SSIM_EPS)
+    return ((1 - ssim) / 2).clamp(0, 1).mean(-3, keepdim=True)
+
+
+class _DSSIM(torch.autograd.Function):
+    """:func:`dssim_map` with its derivative to ``warped`` by hand (the target is a constant).
+
+    With SSIM = a·b/q, q = c·d + ε, and ``a = 2·μ_t·μ_w + C1``, ``b = 2·(E[t·w] − μ_t·μ_w) + C2``,
+    ``c = μ_t² + μ_w² + C1``, ``d = σ_t² + E[w²] − μ_w² + C2`` (E the Gaussian window's mean):
+    ``∂S/∂μ_w = 2·μ_t·(b − a)/q + 2·μ_w·S·(c − d)/q``, ``∂S/∂E[t·w] = 2·a/q``,
+    ``∂S/∂E[w²] = −S·c/q``; each goes back through the window's transpose (:class:`_Blur`), and
+    ``E[w²]``, ``E[t·w]`` to ``w`` by ``2·w``, ``t``. The clamp passes the gradient where
+    ``0 ≤ (1 − S)/2 ≤ 1`` (torch's). Saves autograd's dozen full-size intermediates."""
+
+    @staticmethod
+    def forward(ctx, target, warped, taps):  # noqa: ANN001, ANN205 (autograd's signature)
+        a, b, c, d, mu_t, mu_w = _ssim_terms(target, warped, taps)
+        q = c * d + SSIM_EPS
+        ssim = a * b / q
+        half = (1 - ssim) / 2
+        ctx.save_for_backward(target, warped, taps, a, b, c, d, q, ssim, mu_t, mu_w)
+        return half.clamp(0, 1).mean(-3, keepdim=True)
+
+    @staticmethod
+    def backward(ctx, grad):  # noqa: ANN001, ANN205
+        target, warped, taps, a, b, c, d, q, ssim, mu_t, mu_w = ctx.saved_tensors
+        half = (1 - ssim) / 2
+        g = grad * (-0.5 / warped.shape[-3]) * ((half >= 0) & (half <= 1))  # dL/dS
+        g_q = g / q
+        g_mu = 2 * g_q * (mu_t * (b - a) + mu_w * ssim * (c - d))
+        g_tw, g_ww = 2 * g_q * a, -g_q * ssim * c
+
+        def back(x: torch.Tensor) -> torch.Tensor:  # the window's transpose, both axes
+            return _Blur.backward_of(_Blur.backward_of(x, taps, -1), taps, -2)
+
+        grad_w = back(g_mu) + 2 * warped * back(g_ww) + target * back(g_tw)
+        return None, grad_w.sum_to_size(warped.shape), None
+
+
+def kornia_dssim_map(target: torch.Tensor, warped: torch.Tensor) -> torch.Tensor:
+    """:func:`dssim_map` by :func:`kornia.metrics.ssim` (``(B, C, H, W)`` both, no broadcasting):
+    the independent implementation it is tested against, and the speed baseline."""
     ssim = kornia.metrics.ssim(target, warped, SSIM_WINDOW, max_val=1.0)
     return ((1 - ssim) / 2).clamp(0, 1).mean(1, keepdim=True)
 
@@ -327,7 +457,8 @@ def dssim_map(target: torch.Tensor, warped: torch.Tensor) -> torch.Tensor:
 def photometric_map(
     target: torch.Tensor, warped: torch.Tensor, alpha: float = SSIM_WEIGHT
 ) -> torch.Tensor:
-    """Per-pixel photometric error ``(1 − α)·|I_t − Ĩ| + α·(1 − SSIM)/2`` (eq. 5.3), (B, 1, H, W).
+    """Per-pixel photometric error ``(1 − α)·|I_t − Ĩ| + α·(1 − SSIM)/2`` (eq. 5.3),
+    ``(…, 1, H, W)``; ``target`` broadcasts against ``warped``.
 
     ``alpha = 0`` is the plain L1 distance of the thesis' toy problems (§4.7.3).
     """
