@@ -59,7 +59,7 @@ def test_photometric_loss_and_gradient_equal_the_reference(problem, occluded):
 
 
 def test_photometric_kernel_gives_each_sample_what_it_gives_it_alone():
-    """The default grid's 35 points in one batch: the kernel's loop over grid points then runs
+    """The default grid's 50 points in one batch: the kernel's loop over grid points then runs
     vectorised (several points at a time) and a scalar remainder, where one point alone runs
     only the scalar form; losses and gradients must be equal bit for bit, ODM masks included."""
     scenes = [_random_scene("horizon", 8, 24), _random_scene("flower", 9, 24)]

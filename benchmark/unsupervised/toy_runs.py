@@ -1,5 +1,5 @@
 """The finished runs of an unfinished toy study, kept so that ``stillbox-bench toy --resume``
-goes on from the last finished run (the full study is 13 batched runs of up to ~2 h in all).
+goes on from the last finished run (the full study is 13 batched runs of up to ~2.7 h in all).
 
 Layout, inside the study's ``--out`` folder::
 
