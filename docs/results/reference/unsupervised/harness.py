@@ -126,7 +126,8 @@ def converted_state(depth_ckpt: Path, pose_ckpt: Path) -> tuple[dict, dict]:
     frames = w.shape[0] // AUTHOR_DOF
     rows = [f * AUTHOR_DOF + k for f in range(frames) for k in range(3)]
     pose["predict.weight"], pose["predict.bias"] = w[rows].clone(), b[rows].clone()
-    state = {**{f"depth.{k}": v for k, v in depth.items()}, **{f"pose.{k}": v for k, v in pose.items()}}
+    state = {f"depth.{k}": v for k, v in depth.items()}
+    state.update({f"pose.{k}": v for k, v in pose.items()})
     return state, meta
 
 
@@ -147,8 +148,13 @@ def convert(depth_ckpt: Path, pose_ckpt: Path, data: Path, dest: Path) -> None:
             "shift": NOMINAL_SHIFT,
             "depth_range": [0.0, MAX_DEPTH],
             "camera": camera_of(data),
-            "config": {"data": str(data), "pose": "orientation", "occlusion": False,
-                       "source": str(depth_ckpt), "epoch": meta.get("epoch")},  # fmt: skip
+            "config": {
+                "data": str(data),
+                "pose": "orientation",
+                "occlusion": False,
+                "source": str(depth_ckpt),
+                "epoch": meta.get("epoch"),
+            },  # fmt: skip
         },
     )
 
@@ -172,7 +178,8 @@ def verify(code: Path, depth_ckpt: Path, pose_ckpt: Path, dest: Path, seed: int 
     g = torch.Generator().manual_seed(seed)
     x = torch.rand(2, 5, 3, 64, 64, generator=g)  # frames in [0, 1]
     a_seq, o_seq = (x - 0.5) / 0.5, (x - 0.5) / 0.2
-    pair_a, pair_o = torch.cat([a_seq[:, 1], a_seq[:, 4]], 1), torch.cat([o_seq[:, 1], o_seq[:, 4]], 1)
+    pair_a = torch.cat([a_seq[:, 1], a_seq[:, 4]], 1)
+    pair_o = torch.cat([o_seq[:, 1], o_seq[:, 4]], 1)
 
     a_depth = author_models.DepthNet(depth_activation="elu", batch_norm=True)
     a_depth.load_state_dict(_author_state(depth_ckpt)[0])
@@ -193,7 +200,10 @@ def verify(code: Path, depth_ckpt: Path, pose_ckpt: Path, dest: Path, seed: int 
         a_depth.train(), ours.train()  # every scale, batch statistics in both
         scales_a, scales_o = a_depth(pair_a)[1:], ours(pair_o)[:3]
     diff = (theirs - mine).abs()
-    coarse = [(a - ACTIVATION_OFFSET - o).abs().max() for a, o in zip(scales_a[1:], scales_o[1:])]
+    coarse = [
+        (a - ACTIVATION_OFFSET - o).abs().max()
+        for a, o in zip(scales_a[1:], scales_o[1:], strict=False)
+    ]
     fine = (scales_a[0] - scales_o[0]).abs()[scales_a[0] >= 1.0 + ACTIVATION_OFFSET]
     out = {
         "eval_depth_max_abs_diff_m": float(diff[exact].max()) if exact.any() else 0.0,
@@ -205,9 +215,12 @@ def verify(code: Path, depth_ckpt: Path, pose_ckpt: Path, dest: Path, seed: int 
         "train_scales_1/8_1/16_max_abs_diff_m (author - 0.01)": float(max(coarse)),
         "translation_max_abs_diff": float((t_theirs - t_mine).abs().max()),
     }
-    train = max(out["train_scale_1/4_max_abs_diff_m"],
-                out["train_scales_1/8_1/16_max_abs_diff_m (author - 0.01)"])  # fmt: skip
-    if max(out["eval_depth_max_abs_diff_m"], out["translation_max_abs_diff"]) > 1e-5 or train > 1e-4:
+    train = max(
+        out["train_scale_1/4_max_abs_diff_m"],
+        out["train_scales_1/8_1/16_max_abs_diff_m (author - 0.01)"],
+    )
+    evaluated = max(out["eval_depth_max_abs_diff_m"], out["translation_max_abs_diff"])
+    if evaluated > 1e-5 or train > 1e-4:
         raise SystemExit(f"conversion does not reproduce the author's networks: {out}")
     return out
 

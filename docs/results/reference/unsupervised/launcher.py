@@ -83,7 +83,8 @@ def main(argv: list[str]) -> None:
         epoch = depthnet_state["epoch"]
         for prefix in ("depthnet", "posenet"):
             shutil.copyfile(
-                Path(save_path) / f"{prefix}_{filename}", keep_dir / f"epoch{epoch}_{prefix}.pth.tar"
+                Path(save_path) / f"{prefix}_{filename}",
+                keep_dir / f"epoch{epoch}_{prefix}.pth.tar",
             )
 
     logger.TermLogger = LineLogger
