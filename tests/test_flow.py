@@ -1,5 +1,5 @@
 """benchmark.core.flow: exact flow from depth and translation, depth back from flow
-(REFERENCE §7)."""
+(thesis 3.3.1)."""
 
 from __future__ import annotations
 

@@ -24,10 +24,10 @@ from benchmark.core.registry import (
     list_models,
 )
 
-# Parameter count of the REFERENCE §4 architecture (= the public DepthNet code with batch norm):
+# Parameter count of the thesis 3.5 architecture (= the public DepthNet code with batch norm):
 # encoder convs without bias + BN, deconv blocks (transposed conv with bias, 3×3 conv, BN),
 # 5 predict_depth convs with bias, 4 bias-free 1→1 up-convs. Computed by hand and by
-# count_parameters; REFERENCE rounds it to "about 10.3 M".
+# count_parameters; the public code is "about 10.3 M".
 DEPTHNET_PARAMETERS = 10_290_473
 
 
@@ -48,7 +48,7 @@ def expected_shapes(b: int, h: int, w: int) -> list[tuple[int, ...]]:
 
 
 def test_parameter_count(depthnet):
-    """The exact count of the REFERENCE architecture, within 0.5 % of 10.29 M."""
+    """The exact count of the thesis 3.5 architecture, within 0.5 % of 10.29 M."""
     n = count_parameters(depthnet)
     assert n == DEPTHNET_PARAMETERS
     assert abs(n - 10.29e6) / 10.29e6 < 0.005
@@ -161,7 +161,7 @@ def test_init_statistics(depthnet):
 
 
 def test_multiscale_l1_by_hand():
-    """Each output against the target area-averaged to its size, weighted (REFERENCE §5)."""
+    """Each output against the target area-averaged to its size, weighted (thesis 3.6)."""
     from benchmark.supervised.train import multiscale_loss
 
     target = torch.tensor([[1.0, 1, 3, 3], [1, 1, 3, 3], [5, 5, 7, 7], [5, 5, 7, 7]])[None]
@@ -190,11 +190,11 @@ def test_multiscale_epe_averages_valid_pixels_only():
     assert loss.item() == pytest.approx((10 + 5) / 2)
 
 
-# FlowNetS (REFERENCE §4): encoder convs 6→64 (7×7), 64→128 (5×5), 128→256 (5×5), then 3×3
+# FlowNetS (Dosovitskiy 2015): encoder convs 6→64 (7×7), 64→128 (5×5), 128→256 (5×5), then 3×3
 # 256→256, 256→512, 512→512, 512→512, 512→512, 512→1024, 1024→1024, with biases: 24,050,752;
 # bias-free 4×4 deconvs 1024→512, 1026→256, 770→128, 386→64: 14,563,328; bias-free 3×3
 # predict_flow convs from 1024, 1026, 770, 386, 194 channels to 2: 61,200; four bias-free 4×4
-# 2→2 up-convs: 256. Total 38,675,536 ≈ REFERENCE's "≈ 38.7 M".
+# 2→2 up-convs: 256. Total 38,675,536 ≈ 38.7 M.
 FLOWNETS_PARAMETERS = 38_675_536
 
 
@@ -218,7 +218,7 @@ def test_flownets_parameter_count():
 
 def test_flownets_macs_and_outputs():
     model = FlowNetS("flow").eval()
-    assert abs(macs(model, 512, 512) - 21e9) / 21e9 < 0.01  # REFERENCE: ≈ 21 GMAC at 512 px
+    assert abs(macs(model, 512, 512) - 21e9) / 21e9 < 0.01  # about 21 GMAC at 512 px
     tiny = build_model("flownets-flow-tiny").eval()
     with torch.no_grad():
         outs = tiny(torch.randn(2, 6, 64, 128))

@@ -461,7 +461,7 @@ def test_a_perfect_sfmlearner_scores_zero(truths):
 
 def test_a_perfect_depthnet_saturating_at_100_m_scores_what_its_chosen_pair_loses(truths):
     """The ideal DepthNet of the supervised recipe, whose targets are clipped to 100 m at d0
-    (REFERENCE.md §3): min(depth × d0/‖t_r‖, 100 m). "P (fixed pair)" (‖t_r‖ = d0) scores zero;
+    (benchmark.core.data): min(depth × d0/‖t_r‖, 100 m). "P (fixed pair)" (‖t_r‖ = d0) scores zero;
     the "P" rule reads the mean of the saturated map, so on near scenes it keeps a pair shorter
     than d0 whose far pixels saturate, and scores the error of min(depth × d0/‖t_r‖, 100) ×
     ‖t_r‖/d0 at that pair, computed here (rel 1e-5). Not a defect of the code: the thesis' rule

@@ -91,7 +91,7 @@ class TrainConfig:
     """Everything a training run depends on.
 
     ``model``: registry name; ``data``: dataset folder; ``out``: run folder. The recipe fields
-    (``epochs`` … ``depth_range``, the thesis recipe at 64/128 px, REFERENCE §5): ``milestones``
+    (``epochs`` … ``depth_range``, the thesis recipe at 64/128 px, thesis 3.6): ``milestones``
     are fractions of the epoch count at which the learning rate is multiplied by ``gamma``
     (epochs 19, 30, 44, 53 of 55); ``loss_weights`` weigh the outputs finest (1/4) to coarsest
     (1/64); the loss is multiplied by ``loss_scale``. ``optimizer``: "sgd" (DepthNet recipe) or

@@ -1,6 +1,6 @@
 """Image pairs from a stillbox-gen dataset, read through stillbox_gen.dataset.Dataset.
 
-Training pairs follow the original DepthNet sampling (REFERENCE §3): frame i1 uniform, shift =
+Training pairs follow the original DepthNet sampling (its public loader): frame i1 uniform, shift =
 round(2·nominal_shift·U) in {0..6}, i2 = min(last, i1 + shift), swapped with probability 0.5; the
 target is depth(i2) · nominal_shift / |i2 − i1| (100 m when i1 == i2), clipped to the depth range
 ([0, 100] m; [10, 60] m for the clamped DepthNet of thesis 6.4);

@@ -1,4 +1,4 @@
-"""Optical flow of a translating camera in a static scene, and depth back from flow (REFERENCE §7).
+"""Optical flow of a translating camera in a static scene, and depth back from flow (thesis 3.3.1).
 
 Conventions (the dataset's, docs/FORMAT.md):
 
@@ -117,7 +117,7 @@ def depth_from_flow(
     min_depth: float = MIN_DEPTH,
     max_depth: float = MAX_DEPTH,
 ) -> torch.Tensor:
-    """Depth of frame a from its flow towards frame b and the known translation (REFERENCE §7).
+    """Depth of frame a from its flow towards frame b and the known translation (thesis 3.3.1).
 
     ``Z_b = (A·A) / (−A·F)`` (the flow projected on the line through the FOE), then
     ``Z_a = Z_b + Tz``. Works for forward, backward, lateral (``Tz`` = 0, FOE at infinity) and

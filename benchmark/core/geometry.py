@@ -1,4 +1,4 @@
-"""Focus of expansion (FOE) of a purely translating pinhole camera (thesis 3.1.5, REFERENCE §7).
+"""Focus of expansion (FOE) of a purely translating pinhole camera (thesis 3.1.5).
 
 Conventions: OpenCV camera axes (x right, y down, z forward); pixel coordinates (x, y) in pixels
 with the centre of the top-left pixel at (0, 0); ``K`` is the 3×3 intrinsic matrix

@@ -7,10 +7,10 @@ to 1/4: at each scale a 3×3 ``predict_<head>`` conv gives a *raw* prediction, a
 stride-2 transposed conv (``upsampled_<head>6_to_5`` …) upsamples it, and the next scale's
 features are (skip features, ``deconv`` output, upsampled raw prediction) concatenated.
 
-- :class:`DepthNet` (thesis 3.5, REFERENCE §4): FlowNetS at half width, 3×3 kernels, ReLU,
+- :class:`DepthNet` (thesis 3.5, Figs. 3.8-3.9): FlowNetS at half width, 3×3 kernels, ReLU,
   BatchNorm (eps 1e-3), deconvs followed by a 3×3 conv, ``predict_depth`` convs with bias, one
   channel of depth in metres through "1 + ELU". 10,290,473 parameters.
-- :class:`FlowNetS` (Dosovitskiy et al. 2015, REFERENCE §4): kernels 7, 5, 5 then 3×3,
+- :class:`FlowNetS` (Dosovitskiy et al. 2015): kernels 7, 5, 5 then 3×3,
   LeakyReLU(0.1), optional BatchNorm on the encoder, single transposed-conv deconvs, bias-free
   ``predict_flow`` convs; a flow head (2 channels, pixels) or a depth head (1 channel, metres).
 

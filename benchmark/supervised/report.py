@@ -212,7 +212,7 @@ def sensitivity_markdown(noise_px: float, noisy: dict, bins: list[dict]) -> str:
         f"## Sensitivity: exact flow + N(0, {noise_px:g} px) noise per component",
         "",
         f"MAE {noisy['mae']:.3f} m, MRE {noisy['mre']:.3f}, MLE {noisy['mle']:.3f}. Error by "
-        "distance to the FOE (the ill-conditioning near the FOE, REFERENCE §7):",
+        "distance to the FOE (the ill-conditioning near the FOE, thesis 3.1.5):",
         "",
         foe_table(bins),
     ]

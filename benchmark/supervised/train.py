@@ -1,4 +1,4 @@
-"""Supervised training of a registered network (REFERENCE §5 recipe), resumable exactly.
+"""Supervised training of a registered network (thesis 3.6's recipe), resumable exactly.
 
 Depth networks learn the rescaled depth of the second frame with the multi-scale L1 loss; flow
 networks learn the exact flow of the pair (data.PairDataset ``target="flow"``) with the
