@@ -1,6 +1,7 @@
-"""The numbers quoted in the chapter-3 results pages are those of their committed outputs: each
-table row of docs/results/scaling and docs/results/reference is read back from the page and
-compared, at the page's precision, with results.csv, fit.json and the eval summaries beside it."""
+"""The numbers quoted in the results pages are those of their committed outputs: each table row
+of docs/results/scaling, reference, reference/unsupervised and table-5.2 is read back from the
+page and compared, at the page's precision, with the results.csv, fit.json and eval summaries
+beside it."""
 
 from __future__ import annotations
 
@@ -102,3 +103,72 @@ def test_reference_initialisation_table_matches_its_summaries():
             assert s["training_state"]["global_step"] * 32 == samples
             measured += [s["metrics"]["mae"], s["metrics"]["mle"]]
         _agree(_numbers(xavier), measured)
+
+
+def _sequence_rows(path: Path) -> dict[tuple[str, str, str, str], dict]:
+    """eval-sequences' results.csv keyed by (orientation, checkpoint, scale, occlusion)."""
+    return {(r["orientation"], r["checkpoint"], r["scale"], r["occlusion"]): r for r in _csv(path)}
+
+
+def _mae_mre_mle(row: dict) -> list[float]:
+    return [float(row[k]) for k in ("mae", "mre", "mle")]
+
+
+#: Table 5.2's page rows (first cell) and the checkpoint, scale and occlusion flag of their line
+#: in its results.csv
+TABLE_5_2_ROWS = {
+    "constant plane (GT median)": ("", "GT", "False"),
+    "supervised DepthNet (P, D + O)": (
+        "runs/compare-64/depthnet/checkpoints/best.pt",
+        "P",
+        "False",
+    ),
+    "unsupervised DepthNet (P, O, occlusion module off)": (
+        "runs/t52/unsup-O/checkpoints/best.pt",
+        "P",
+        "False",
+    ),
+    "unsupervised DepthNet (P, O, occlusion module on)": (
+        "runs/t52/unsup-O-odm/checkpoints/best.pt",
+        "P",
+        "True",
+    ),
+    "unsupervised DepthNet (P, no supervision: 6-DoF PoseNet)": (
+        "runs/t52/unsup-6dof/checkpoints/best.pt",
+        "P",
+        "False",
+    ),
+    "SFMLearner (P, O)": ("runs/t52/sfm/checkpoints/best.pt", "P", "False"),
+    "SFMLearner (GT, O)": ("runs/t52/sfm/checkpoints/best.pt", "GT", "False"),
+}
+
+
+def test_table_5_2_page_matches_its_results_csv():
+    folder = RESULTS / "table-5.2"
+    scored = _sequence_rows(folder / "results.csv")
+    text = (folder / "README.md").read_text()
+    rows = {cells[0]: cells for cells in _rows(folder / "README.md", r"[a-zA-Z].*\(.*")}
+    assert set(TABLE_5_2_ROWS) <= set(rows)
+    for label, (ckpt, scale, occlusion) in TABLE_5_2_ROWS.items():
+        _agree(_numbers(rows[label][1]), _mae_mre_mle(scored[("upright", ckpt, scale, occlusion)]))
+    # the upside-down paragraph lists every row's MAE in the table's order
+    upside = text.split("Upside down (Table 5.3")[1].split("\n\n")[0]
+    measured = [float(scored[("upside-down", *key)]["mae"]) for key in TABLE_5_2_ROWS.values()]
+    _agree(_numbers(upside.split("the same rows: ")[1].split(" m MAE")[0]), measured)
+
+
+def test_unsupervised_reference_table_matches_its_results_csv():
+    folder = RESULTS / "reference" / "unsupervised"
+    scored = _sequence_rows(folder / "outputs" / "results.csv")
+    ours, author = "runs/ref-unsup/ours/checkpoints/", "runs/ref-unsup/author/author.pt"
+    expected = {
+        "constant plane (GT median)": [("", "GT")],
+        "ours": [(ours + "best.pt", "P"), (ours + "best.pt", "P (fixed pair)")],
+        "author's code": [(author, "P"), (author, "P (fixed pair)")],
+    }
+    for label, keys in expected.items():
+        (cells,) = _rows(folder / "README.md", re.escape(label) + r"( \(.*)?")
+        for cell, (ckpt, scale) in zip(cells[1:], keys, strict=False):
+            _agree(_numbers(cell), _mae_mre_mle(scored[("upright", ckpt, scale, "False")]))
+    last = scored[("upright", ours + "last.pt", "P", "False")]
+    assert _mae_mre_mle(last) == _mae_mre_mle(scored[("upright", ours + "best.pt", "P", "False")])
