@@ -288,6 +288,18 @@ class RenderConfig:
             is_flag=True,
         ),
     )
+    # also write optical flow, validity and occlusion masks of each frame pair of
+    # stillbox_gen.flow.flow_pairs, computed from the rendered depth and the poses (docs/FORMAT.md)
+    flow: bool = field(
+        default=False,
+        metadata=flag(
+            "--flow",
+            "Also write optical flow (.flo) with validity and occlusion masks (PNG) for frame "
+            "pairs t, t+1 and t, t+3, both ways.",
+            215,
+            is_flag=True,
+        ),
+    )
 
 
 # --quality: render-section values (measured with `stillbox-gen bench`, see docs/SPEED.md);
@@ -379,6 +391,7 @@ OMITTED_AT_DEFAULT = {
     "camera.rotation_speed_range_deg": None,
     "objects.fixed": None,
     "render.light_tree": True,
+    "render.flow": False,
 }
 
 SECTIONS = {

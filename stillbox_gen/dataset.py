@@ -40,6 +40,8 @@ class Scene:
     speed: np.ndarray  # (3,) m/s in the first frame's camera axes
     time_step: float  # seconds between frames
     record: dict = field(repr=False)  # the scene's metadata.json entry, every key
+    # --flow: {(a, b): {"flow": .flo, "valid": PNG, "occluded": PNG}} of each stored frame pair
+    flow_files: dict[tuple[int, int], dict[str, Path]] = field(default_factory=dict, repr=False)
 
     @property
     def frames(self) -> int:
@@ -71,6 +73,23 @@ class Scene:
     def load_depth(self, frame: int) -> np.ndarray:
         """Planar depth of frame ``frame`` as (H, W) float32 metres (not clipped)."""
         return formats.read_depth(self.depth[frame])
+
+    def load_flow(self, a: int, b: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The stored optical flow from frame ``a`` to frame ``b`` (datasets made with --flow):
+        ``(flow, valid, occluded)``: flow (H, W, 2) float32 pixels on frame a's grid, position
+        in frame b minus position in frame a (x right, y down), NaN where not valid; the two
+        (H, W) bool masks of stillbox_gen.flow.flow_masks. DatasetError when the dataset holds
+        no flow for that pair or a file is missing or unreadable."""
+        files = self.flow_files.get((a, b))
+        if files is None:
+            raise DatasetError(f"scene {self.index}: no stored flow from frame {a} to frame {b}")
+        flow = formats.read_flo(files["flow"])
+        valid = formats.read_mask_png(files["valid"])
+        occluded = formats.read_mask_png(files["occluded"])
+        if valid.shape != flow.shape[:2] or occluded.shape != valid.shape:
+            raise DatasetError(f"'{files['flow']}': its masks are not of the flow's size")
+        flow[~valid] = np.nan
+        return flow, valid, occluded
 
 
 class Dataset:
@@ -151,6 +170,13 @@ class Dataset:
                 speed=np.array(rec["speed"], dtype=np.float64),
                 time_step=float(rec["time_step"]),
                 record=rec,
+                flow_files={
+                    (e["from"], e["to"]): {
+                        k: formats.resolve_inside(self.root, e[k], where, chunk)
+                        for k in layout.FLOW_KEYS
+                    }
+                    for e in rec.get("flow", [])
+                },
             )
         except (KeyError, TypeError) as e:
             raise DatasetError(f"{where}: not a stillbox-gen record ({e!r})") from None

@@ -250,3 +250,68 @@ def linear_to_srgb8(rgb: np.ndarray) -> np.ndarray:
     x = np.clip(rgb, 0.0, 1.0)
     srgb = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
     return np.round(srgb * 255.0).astype(np.uint8)
+
+
+# ---------------------------------------------------------------- optical flow and masks
+
+#: Middlebury .flo: the float32 magic number 202021.25 ("PIEH" in little-endian bytes), then
+#: int32 width and height, then float32 (u, v) per pixel, row by row (u right, v down, pixels).
+FLO_MAGIC = 202021.25
+#: Middlebury's "unknown flow": values above 1e9 mean no flow; stillbox-gen writes this there.
+FLO_UNKNOWN = 1e10
+
+
+def flo_bytes(flow: np.ndarray) -> bytes:
+    """The Middlebury .flo bytes of an (H, W, 2) flow in pixels (NaN written as FLO_UNKNOWN)."""
+    flow = np.asarray(flow)
+    if flow.ndim != 3 or flow.shape[2] != 2:
+        raise ValueError(f"flow must be (H, W, 2), got {flow.shape}")
+    h, w = flow.shape[:2]
+    data = np.nan_to_num(flow.astype("<f4"), nan=FLO_UNKNOWN)
+    head = np.array([FLO_MAGIC], "<f4").tobytes() + np.array([w, h], "<i4").tobytes()
+    return head + np.ascontiguousarray(data).tobytes()
+
+
+def write_flo(path: Path, flow: np.ndarray) -> None:
+    """Write an (H, W, 2) flow (pixels, channel 0 x right, 1 y down) as Middlebury .flo,
+    atomically (:func:`atomic_write`)."""
+    atomic_write_bytes(path, flo_bytes(flow))
+
+
+def read_flo(path: Path) -> np.ndarray:
+    """An (H, W, 2) float32 flow from a Middlebury .flo file, values as stored (Middlebury's
+    unknown flow is above 1e9). DatasetError naming the file when it is missing, its magic
+    number is not 202021.25 or its size disagrees with its header."""
+    try:
+        data = Path(path).read_bytes()
+    except OSError as e:
+        raise DatasetError(f"cannot read flow '{path}' ({e.strerror})") from None
+    if len(data) < 12 or np.frombuffer(data[:4], "<f4")[0] != np.float32(FLO_MAGIC):
+        raise DatasetError(f"'{path}': not a .flo file (magic number is not {FLO_MAGIC})")
+    w, h = (int(v) for v in np.frombuffer(data[4:12], "<i4"))
+    if w < 1 or h < 1 or len(data) != 12 + 8 * w * h:
+        raise DatasetError(f"'{path}': {len(data)} bytes, not a {w}x{h} .flo file")
+    return np.frombuffer(data[12:], "<f4").reshape(h, w, 2).astype(np.float32)
+
+
+def write_mask_png(path: Path, mask: np.ndarray) -> None:
+    """Write an (H, W) boolean mask as an 8-bit grey PNG (255 true, 0 false), atomically."""
+    import cv2
+
+    ok, buf = cv2.imencode(".png", np.where(np.asarray(mask, bool), 255, 0).astype(np.uint8))
+    if not ok:
+        raise OSError(f"cannot encode '{path}'")
+    atomic_write_bytes(path, buf.tobytes())
+
+
+def read_mask_png(path: Path) -> np.ndarray:
+    """An (H, W) boolean mask from :func:`write_mask_png`'s file. DatasetError naming the file
+    when it is missing, does not decode or holds values other than 0 and 255."""
+    import cv2
+
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None or img.ndim != 2 or img.dtype != np.uint8:
+        raise DatasetError(f"cannot read mask '{path}' (missing, or not an 8-bit grey PNG)")
+    if not np.isin(img, (0, 255)).all():
+        raise DatasetError(f"'{path}': a mask holds only 0 and 255")
+    return img == 255

@@ -11,6 +11,9 @@ is stillbox_gen.record. Pure functions: nothing here reads or writes a file.
         metadata.json       METADATA_JSON: {"args": {...}, "scenes": [record, ...]}
         RGB_<s>_<f>.png     rgb_name(s, f): frame f of scene s = local_index(k)
         depth_<s>_<f>.exr   depth_name(s, f)
+        flow_<s>_<a>_<b>.flo      flow_name(s, a, b): optical flow from frame a to b (--flow)
+        valid_<s>_<a>_<b>.png     flow_valid_name(s, a, b): where that flow lands in frame b
+        occluded_<s>_<a>_<b>.png  flow_occluded_name(s, a, b): where it is hidden in frame b
         .records/<s>.json   record_name(k): the scene's record, written last (complete mark)
         .tmp-<s>/           scene_tmp_name(k): a scene being rendered
 """
@@ -68,6 +71,30 @@ def depth_name(local: int, frame: int, ext: str = "exr") -> str:
     return f"depth_{local:04d}_{frame:02d}.{ext}"
 
 
+def flow_name(local: int, a: int, b: int) -> str:
+    """``flow_<s>_<a>_<b>.flo``: optical flow from frame ``a`` to frame ``b`` on ``a``'s grid."""
+    return f"flow_{local:04d}_{a:02d}_{b:02d}.flo"
+
+
+def flow_valid_name(local: int, a: int, b: int) -> str:
+    """``valid_<s>_<a>_<b>.png``: where the flow of :func:`flow_name` is valid."""
+    return f"valid_{local:04d}_{a:02d}_{b:02d}.png"
+
+
+def flow_occluded_name(local: int, a: int, b: int) -> str:
+    """``occluded_<s>_<a>_<b>.png``: where the point of frame ``a`` is hidden in frame ``b``."""
+    return f"occluded_{local:04d}_{a:02d}_{b:02d}.png"
+
+
+#: the file keys of an entry of a record's ``flow`` list (stillbox_gen.flow.flow_entries)
+FLOW_KEYS = ("flow", "valid", "occluded")
+
+
+def flow_files(record: dict) -> list[str]:
+    """The flow, validity and occlusion files of a scene's record (none without --flow)."""
+    return [p[k] for p in record.get("flow", []) for k in FLOW_KEYS]
+
+
 def record_name(index: int) -> str:
     """``<chunk>/.records/<s>.json``, relative to the dataset root."""
     return f"{chunk_name(index)}/{RECORDS_DIR}/{local_index(index):04d}.json"
@@ -84,6 +111,8 @@ def scene_tmp_name(index: int) -> str:
 
 
 def scene_files(record: dict) -> list[str]:
-    """Every file name of a scene in its chunk folder (frames, depth, legacy copies), sorted."""
+    """Every file name of a scene in its chunk folder (frames, depth, legacy copies, flow),
+    sorted."""
     names = [*record["rgb"], *record["depth_exr"], *record["imgs"], *record["depth"]]
+    names += flow_files(record)
     return sorted(set(names))

@@ -65,6 +65,7 @@ PHASES: tuple[Phase, ...] = (
     Phase("sample", DRIVER, "scene sampling (layouts, poses), temporary folder"),
     Phase("submit", DRIVER, "scene sent to a worker (spawns workers when needed)"),
     Phase("wait", DRIVER, "waiting for a worker to finish a scene"),
+    Phase("flow", DRIVER, "optical flow and masks from depth and poses (--flow)"),
     Phase("hash", DRIVER, "SHA-256 of the scene's files"),
     Phase("commit", DRIVER, "record built, files moved, record written"),
     Phase("pool_stop", DRIVER, "worker pool shut down"),

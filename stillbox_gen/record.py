@@ -16,6 +16,7 @@ from dataclasses import asdict, dataclass, fields
 
 from . import camera, portable
 from .errors import ConfigError
+from .flow import flow_entries
 from .layout import depth_name, local_index, rgb_name
 
 
@@ -109,11 +110,13 @@ class SceneSpec:
         )
 
 
-def scene_record(spec: dict, image_format: str, legacy: bool) -> dict:
+def scene_record(spec: dict, image_format: str, legacy: bool, flow: bool = False) -> dict:
     """The metadata.json entry of one scene, built from its SceneSpec dict.
 
     Original StillBox keys first (imgs, depth, speed, time_step, length, orientation), then ours;
-    ``sha256`` ({file name: digest}) is added last, once the files are written.
+    with ``flow`` (--flow), ``flow`` lists the flow and mask files of each frame pair
+    (stillbox_gen.flow.flow_entries); ``sha256`` ({file name: digest}) is added last, once the
+    files are written.
     """
     cam = spec["camera"]
     local, n = local_index(spec["index"]), len(cam["cam2world"])
@@ -144,6 +147,7 @@ def scene_record(spec: dict, image_format: str, legacy: bool) -> dict:
         "primitives": spec["primitives"],
         "box": spec["box"],
         "light": spec["light"],
+        **({"flow": flow_entries(local, n)} if flow else {}),
     }
 
 

@@ -11,6 +11,20 @@ _quat = {"type": "array", "items": _num, "minItems": 4, "maxItems": 4}
 _mat = {"type": "array", "items": {"type": "array", "items": _num}}
 _mat4 = {**_mat, "minItems": 4, "maxItems": 4}
 _names = {"type": "array", "items": {"type": "string", "pattern": r"^[^/_]+_\d+_\d+\.\w+$"}}
+_frame = {"type": "integer", "minimum": 0}
+# --flow: one entry per frame pair (stillbox_gen.flow.flow_entries, layout.flow_name & co.)
+_flow_entry = {
+    "type": "object",
+    "required": ["from", "to", "flow", "valid", "occluded"],
+    "additionalProperties": False,
+    "properties": {
+        "from": _frame,
+        "to": _frame,
+        "flow": {"type": "string", "pattern": r"^flow_\d+_\d+_\d+\.flo$"},
+        "valid": {"type": "string", "pattern": r"^valid_\d+_\d+_\d+\.png$"},
+        "occluded": {"type": "string", "pattern": r"^occluded_\d+_\d+_\d+\.png$"},
+    },
+}
 
 MATERIAL = {
     "type": "object",
@@ -64,6 +78,7 @@ SCENE_RECORD = {
         "depth": _names,
         "rgb": _names,
         "depth_exr": _names,
+        "flow": {"type": "array", "items": _flow_entry},  # only in datasets made with --flow
         "speed": _vec3,
         "time_step": {"type": "number", "exclusiveMinimum": 0},
         "length": {"type": "integer", "minimum": 2},

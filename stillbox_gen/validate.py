@@ -21,6 +21,8 @@ import jsonschema
 import numpy as np
 
 from . import config, formats, layout, manifest, schema
+from .errors import DatasetError
+from .flow import flow_entries
 from .layout import DATASET_JSON, MANIFEST
 from .scene import scene_seed
 
@@ -52,6 +54,25 @@ def _check_frame(root: Path, rgb: str, depth: str, w: int, h: int) -> list[str]:
     elif not np.all(np.isfinite(d)) or not np.all(d > 0):
         bad = int(np.sum(~np.isfinite(d) | (d <= 0)))
         problems.append(f"{depth}: {bad} pixels not finite and positive")
+    return problems
+
+
+def _check_flow(root: Path, chunk: str, entry: dict, w: int, h: int) -> list[str]:
+    """Pixel checks of one stored flow pair (--flow): sizes, masks, finite where valid."""
+    name = f"{chunk}/{entry['flow']}"
+    try:
+        flow = formats.read_flo(root / chunk / entry["flow"])
+        valid = formats.read_mask_png(root / chunk / entry["valid"])
+        occluded = formats.read_mask_png(root / chunk / entry["occluded"])
+    except DatasetError as e:
+        return [str(e)]
+    if flow.shape != (h, w, 2) or valid.shape != (h, w) or occluded.shape != (h, w):
+        return [f"{name}: expected {h}x{w} flow and masks, got {flow.shape[:2]}, {valid.shape}"]
+    problems = []
+    if np.any(occluded & ~valid):
+        problems.append(f"{chunk}/{entry['occluded']}: occluded pixels outside the valid mask")
+    if not np.all(np.abs(flow[valid]) < formats.FLO_UNKNOWN / 10):
+        problems.append(f"{name}: flow not finite at valid pixels")
     return problems
 
 
@@ -217,6 +238,10 @@ def _scene_config_problems(s: dict, cfg: config.DatasetConfig, where: str) -> li
             f"{where}: time_step {s['time_step']} differs from dataset.json's config "
             f"({c.time_step})"
         )
+    want = flow_entries(s["scene_in_chunk"], s["length"]) if cfg.render.flow else None
+    if s.get("flow") != want:
+        said = "its flow files" if cfg.render.flow else "no flow files (made without --flow)"
+        problems.append(f"{where}: flow entries differ from dataset.json's config ({said})")
     found = foreign_photos(s, cfg.materials)
     if found:
         problems.append(
@@ -282,6 +307,9 @@ def _file_problems(root: Path, chunk: str, s: dict, check: bool) -> tuple[list[s
         for rgb, depth in zip(s["rgb"], s["depth_exr"], strict=True):
             if rgb in safe and depth in safe:
                 problems += _check_frame(root, f"{chunk}/{rgb}", f"{chunk}/{depth}", w, h)
+        for entry in s.get("flow", []):
+            if all(entry[k] in safe for k in layout.FLOW_KEYS):
+                problems += _check_flow(root, chunk, entry, w, h)
     return problems, sums is not None
 
 
@@ -296,6 +324,8 @@ def _unsafe_names(root: Path, chunk: str, meta) -> list[str]:
         where = f"{chunk}/metadata.json: scene {s.get('index')}"
         lists = [s.get(k) for k in ("imgs", "depth", "rgb", "depth_exr")]
         names = [n for v in lists if isinstance(v, list) for n in v]
+        flows = s.get("flow") if isinstance(s.get("flow"), list) else []
+        names += [e.get(k) for e in flows if isinstance(e, dict) for k in layout.FLOW_KEYS]
         for name in dict.fromkeys(n for n in names if isinstance(n, str)):
             try:
                 formats.resolve_inside(root, name, where, folder=chunk)

@@ -22,6 +22,7 @@ from . import config, formats, layout, manifest, photos
 from .arguments import check_out_folder
 from .config import CPU_DEVICE, DatasetConfig, denoise_quality
 from .errors import ConfigError, DatasetError
+from .flow import write_scene_flow
 from .lock import folder_lock
 from .phases import PhaseTimes, measure
 from .record import scene_record
@@ -196,14 +197,18 @@ def scene_checksums(folder: Path, record: dict) -> dict[str, str]:
 def commit_scene(
     out: Path, spec: dict, cfg: DatasetConfig, times: PhaseTimes | None = None
 ) -> dict:
-    """Move a scene rendered into its temporary folder (layout.scene_tmp_name) into its chunk,
-    then write its record (the completion mark) with the SHA-256 of every file of the scene.
-    With ``times``, the hashing is timed there as phase ``hash``, the rest as ``commit``
+    """Move a scene rendered into its temporary folder (layout.scene_tmp_name) into its chunk
+    (with --flow, its flow files are first computed there: stillbox_gen.flow), then write its
+    record (the completion mark) with the SHA-256 of every file of the scene. With ``times``,
+    the flow is timed there as phase ``flow``, the hashing as ``hash``, the rest as ``commit``
     (stillbox_gen.phases)."""
     tmp = out / layout.scene_tmp_name(spec["index"])
     chunk_dir = tmp.parent
     with measure(times, "commit"):
-        record = scene_record(spec, cfg.render.image_format, cfg.render.legacy)
+        record = scene_record(spec, cfg.render.image_format, cfg.render.legacy, cfg.render.flow)
+    if cfg.render.flow:
+        with measure(times, "flow"):
+            write_scene_flow(tmp, record)
     with measure(times, "hash"):
         record["sha256"] = scene_checksums(tmp, record)
     with measure(times, "commit"):
