@@ -173,13 +173,14 @@ def check_space(folder: Path, nbytes: int) -> None:
         probe.unlink(missing_ok=True)
 
 
-def disk_full_message(e: OSError) -> str:
-    """One line for a full disk: what could not be written, and how to go on."""
+#: how a generator run goes on after a full disk (the end of :func:`disk_full_message`)
+RESUME_SCENES = "finished scenes are kept: free space, then re-run the same command to resume"
+
+
+def disk_full_message(e: OSError, then: str = RESUME_SCENES) -> str:
+    """One line for a full disk: what could not be written, and how to go on (``then``)."""
     where = f" writing '{e.filename}'" if e.filename else ""
-    return (
-        f"disk full{where} ({e.strerror}); finished scenes are kept: free space, then re-run "
-        "the same command to resume"
-    )
+    return f"disk full{where} ({e.strerror}); {then}"
 
 
 def remove_tree(path: Path) -> None:

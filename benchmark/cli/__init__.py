@@ -1,6 +1,8 @@
 """``stillbox-bench``: train, score and compare depth-from-motion models on stillbox-gen data.
 
-User mistakes print one line ``stillbox-bench: error: ...`` and exit with code 2.
+User mistakes print one line ``stillbox-bench: error: ...`` and exit with code 2; a full disk
+(or quota) prints one line ``stillbox-bench: failed: disk full writing '<path>' ...`` and exits
+with code 1, as ``stillbox-gen`` does; Ctrl-C exits with code 130.
 """
 
 from __future__ import annotations
@@ -17,7 +19,15 @@ if importlib.util.find_spec("torch") is None:  # installed without the `bench` e
 
 import click  # noqa: E402 - after the check, which must run before torch is imported below
 
+from stillbox_gen.formats import disk_full_message, is_disk_full  # noqa: E402
+
 from . import export, flight, supervised, unsupervised, video  # noqa: E402
+
+#: how to go on after a full disk: every file is written whole (temporary name, then renamed)
+AFTER_DISK_FULL = (
+    "the files written before are whole: free space, then re-run the same command (run, "
+    "finetune, fly: with --resume --out <run>)"
+)
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
@@ -71,3 +81,8 @@ def main(argv: list[str] | None = None) -> None:
     except (click.exceptions.Abort, KeyboardInterrupt):
         click.echo("stillbox-bench: interrupted; continue with --resume --out <run>", err=True)
         sys.exit(130)
+    except OSError as e:
+        if not is_disk_full(e):
+            raise
+        click.echo(f"stillbox-bench: failed: {disk_full_message(e, AFTER_DISK_FULL)}", err=True)
+        sys.exit(1)

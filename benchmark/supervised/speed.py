@@ -11,6 +11,7 @@ handful of element-wise operations per pixel.
 from __future__ import annotations
 
 import csv
+import io
 import platform
 import re
 import statistics
@@ -18,6 +19,8 @@ import time
 from pathlib import Path
 
 import torch
+
+from stillbox_gen.formats import atomic_write_text
 
 from ..core import models, registry
 
@@ -112,11 +115,14 @@ def measure(
 
 
 def write_csv(rows: list[dict], path: Path) -> None:
+    """The rows as CSV at ``path`` (folders made), written whole: under a temporary name, then
+    renamed (a failed write, e.g. a full disk, is an OSError naming ``path``)."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(rows[0]))
-        w.writeheader()
-        w.writerows(rows)
+    text = io.StringIO(newline="")
+    w = csv.DictWriter(text, fieldnames=list(rows[0]))
+    w.writeheader()
+    w.writerows(rows)
+    atomic_write_text(path, text.getvalue())
 
 
 def markdown(rows: list[dict]) -> str:
