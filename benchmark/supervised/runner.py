@@ -85,6 +85,27 @@ def frame_size(scenes: list[Scene]) -> tuple[int, int]:
     return tuple(scenes[0].load_rgb(0).shape[:2])
 
 
+def check_frame_size(ck: dict, model, size: tuple[int, int], data: Path, ckpt: Path) -> None:
+    """FieldError on ``data`` unless its frames, ``size`` (H, W) pixels, are those the
+    checkpoint ``ck`` (read from ``ckpt``) was trained on (its ``camera``, when recorded) and
+    that its network ``model`` reads (multiples of its ``min_multiple``): a network trained at
+    another size would see its pixels, and so its depth, scaled."""
+    h, w = size
+    cam = ck.get("camera")
+    if cam is not None and (cam["width"], cam["height"]) != (w, h):
+        raise FieldError(
+            "data", f"frames of {w}x{h} px, but the checkpoint '{ckpt}' was trained on "
+            f"{cam['width']}x{cam['height']} px frames; score it on a dataset of that size "
+            f"(stillbox-gen --res {cam['width']}x{cam['height']})", where=f" {data}",
+        )  # fmt: skip
+    multiple = getattr(model, "min_multiple", 1)
+    if h % multiple or w % multiple:
+        raise FieldError(
+            "data", f"frames of {w}x{h} px; the network of '{ckpt}' needs sizes that are "
+            f"multiples of {multiple} px (e.g. stillbox-gen --res {multiple})", where=f" {data}",
+        )  # fmt: skip
+
+
 def median_depth(scenes: list[Scene], max_frames: int = MEDIAN_FRAMES) -> tuple[float, int]:
     """Median ground-truth depth (clipped to MAX_DEPTH, as training targets) over every pixel of up
     to ``max_frames`` frames spread evenly over ``scenes``; returns (metres, frames used)."""
@@ -143,7 +164,13 @@ def score_checkpoint(
     shift = ck.get("shift", NOMINAL_SHIFT)
     if split_data is None or split_data[2].shift != shift:
         video = registry.MODELS[name].kind.target is registry.Target.VIDEO
-        split_data = eval_split(data, split, shift, progress, ckpt, rotations=video)
+        split, scenes = eval_scenes(data, split, shift, ckpt, video)
+        check_frame_size(ck, model, frame_size(scenes), data, ckpt)  # before reading frames
+        split_data = (
+            split,
+            scenes,
+            PairDataset(FrameStore(scenes, progress=progress), "eval", shift),
+        )
     split, scenes, dataset = split_data
     depth_range = ck.get("depth_range", [0.0, MAX_DEPTH])
     clamp = registry.output_clamp(depth_range)
