@@ -135,6 +135,7 @@ def test_the_walk_finds_the_options_of_the_issue():
         assert (name, "--threads") in seen
     assert {("fly", "--res"), ("fly", "--seed"), ("infer", "--speed"), ("infer", "--fps")} <= seen
     assert {("speed", "--resolutions"), ("speed", "--batches"), ("toy", "--lambdas")} <= seen
+    assert ("eval-multishift", "--shifts") in seen  # a list of counts, bounded by click too
     assert len(REFUSED) > 5 * len(NUMERIC) and len(ACCEPTED) >= len(NUMERIC)
 
 

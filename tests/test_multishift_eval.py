@@ -69,7 +69,7 @@ def test_nominal_strategy_scores_what_eval_scores(tiny_dataset, trained, tmp_pat
 @pytest.mark.parametrize(
     ("flags", "words"),
     [
-        (["--shifts", "1,5"], ["--shifts", "1..4"]),
+        (["--shifts", "1,5"], ["--shifts", "at most 4 pairs per frame, got 5"]),
         (["--shifts", "one"], ["--shifts", "integers"]),
         (["--max-shift", "10"], ["--max-shift 10", "--frames"]),
         (["--max-shift", "0"], ["--max-shift", "at least 1"]),

@@ -1,14 +1,18 @@
 """What every group of ``stillbox-bench`` commands shares: the one-line UserError (exit code 2),
-the --data and --device options and their checks, and small option parsers."""
+the --data and --device options and their checks, the lock of an --out folder, and small option
+parsers."""
 
 from __future__ import annotations
 
+import contextlib
+from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import click
 
 from stillbox_gen.conventions import default_root
+from stillbox_gen.errors import ConfigError
 
 from ..core import registry
 from ..core.config import FLAGGED, KEPT_ON_RESUME, check_settings
@@ -43,6 +47,23 @@ def dataset_dir(data: Path) -> Path:
             f"--data: '{data}' is not a finished stillbox-gen dataset (no manifest.parquet)"
         )
     return data
+
+
+@contextlib.contextmanager
+def locked_out(out: Path, flag: str = "--out") -> Iterator[None]:
+    """Hold the lock of the folder ``out`` (stillbox_gen.lock: ``<out>/.stillbox.lock``) for the
+    block: a second command writing into the same folder is refused at once, in one line naming
+    ``flag`` and the process holding it (UserError, exit code 2). ``out`` is created when
+    missing and removed again at the end when the block left it empty, so a command refused
+    inside the block leaves no folder behind."""
+    from stillbox_gen.lock import folder_lock
+
+    with contextlib.ExitStack() as stack:
+        try:
+            stack.enter_context(folder_lock(Path(out), flag))
+        except ConfigError as e:  # in use, or cannot be made: errors of the block pass
+            raise UserError(str(e)) from None
+        yield
 
 
 def torch_device(name: str) -> torch.device:

@@ -30,6 +30,7 @@ from .options import (
     dataset_dir,
     int_option,
     is_default,
+    locked_out,
     model_names,
     setting_options,
     torch_device,
@@ -191,7 +192,8 @@ def eval_cmd(
     save_predictions: bool,
 ) -> None:
     """Score a checkpoint, another method's depth files or your own network on a dataset split
-    (writes summary.json/.md, per_sample.csv, plots)."""
+    (writes summary.json/.md, per_sample.csv, plots). A checkpoint is scored on frames of the
+    size it was trained on."""
     given = [f for f, v in (("--ckpt", ckpt), ("--predictions", predictions),
                             ("--model", user_model)) if v is not None]  # fmt: skip
     if len(given) != 1:
@@ -221,21 +223,25 @@ def eval_cmd(
             )
     from ..supervised import runner
 
-    try:  # checks the method and the data before anything is written to --out
-        if ckpt is not None:
-            s = runner.score_checkpoint(
-                ckpt, data, split, out, device, batch_size, save_predictions,
-                median_scaling=median_scaling,
-            )  # fmt: skip
-        elif predictions is not None:
-            s = runner.score_predictions(predictions, data, split, out, batch_size, median_scaling)
-        else:
-            s = runner.score_user_model(
-                user_model, data, split, out, device, batch_size, displacement, median_scaling,
-                save_predictions,
-            )  # fmt: skip
-    except ValueError as e:
-        raise user_error(e) from None
+    # checks the method and the data before anything is written to --out (its lock aside)
+    with locked_out(out):
+        try:
+            if ckpt is not None:
+                s = runner.score_checkpoint(
+                    ckpt, data, split, out, device, batch_size, save_predictions,
+                    median_scaling=median_scaling,
+                )  # fmt: skip
+            elif predictions is not None:
+                s = runner.score_predictions(
+                    predictions, data, split, out, batch_size, median_scaling
+                )
+            else:
+                s = runner.score_user_model(
+                    user_model, data, split, out, device, batch_size, displacement,
+                    median_scaling, save_predictions,
+                )  # fmt: skip
+        except ValueError as e:
+            raise user_error(e) from None
     m = s["metrics"]
     click.echo(
         f"{s['model']}: MAE {m['mae']:.3f} m, MRE (AbsRel) {m['mre']:.3f}, MLE {m['mle']:.3f}, "
@@ -429,9 +435,10 @@ def speed(
     dev = torch_device(device)
     if threads > 0:
         torch.set_num_threads(threads)
-    rows = speed_table.measure(chosen, dev, sizes, time_res, warmup=warmup, repeats=repeats)
     path = out / speed_table.csv_name(dev)
-    speed_table.write_csv(rows, path)
+    with locked_out(out):
+        rows = speed_table.measure(chosen, dev, sizes, time_res, warmup=warmup, repeats=repeats)
+        speed_table.write_csv(rows, path)
     click.echo(
         f"device {dev}, {torch.get_num_threads()} threads, torch {torch.__version__}; "
         f"timing at {time_res} px, median of {repeats} after {warmup} warm-up passes"
@@ -465,22 +472,16 @@ def _train_speed(names, batches, data, baseline, compile_, time_res, device, thr
     dev = torch_device(device)
     if threads > 0:
         torch.set_num_threads(threads)
-    try:
-        rows = train_speed.measure(
-            chosen,
-            dev,
-            sizes,
-            data,
-            time_res,
-            baseline,
-            compile_,
-            given.get("warmup"),
-            given.get("repeats"),
-        )
-    except (ValueError, DataError) as e:
-        raise user_error(e) from None
     path = out / train_speed.train_csv_name(dev)
-    speed_table.write_csv(rows, path)
+    with locked_out(out):
+        try:
+            rows = train_speed.measure(
+                chosen, dev, sizes, data, time_res, baseline, compile_, given.get("warmup"),
+                given.get("repeats"),
+            )  # fmt: skip
+        except (ValueError, DataError) as e:
+            raise user_error(e) from None
+        speed_table.write_csv(rows, path)
     source = f"training pairs of {data}" if data is not None else "random inputs and targets"
     click.echo(
         f"training step (data, forward, loss, backward, optimiser step) on {source}; "

@@ -35,6 +35,7 @@ from .options import (
     DEVICE_OPTION,
     UserError,
     dataset_dir,
+    locked_out,
     torch_device,
     user_error,
 )
@@ -486,10 +487,11 @@ def eval_sequences_cmd(
     data = dataset_dir(data)
     check_out_folder(out, error=UserError)
     dev = torch_device(device)
-    try:  # checkpoints and data are checked before anything is written to --out
-        rows, md = run_sequences(list(ckpts), data, out, split, upside, dev, scenes, not quiet)
-    except ValueError as e:
-        raise user_error(e, limit="--scenes") from None
+    with locked_out(out):  # checkpoints and data are checked before --out is written
+        try:
+            rows, md = run_sequences(list(ckpts), data, out, split, upside, dev, scenes, not quiet)
+        except ValueError as e:
+            raise user_error(e, limit="--scenes") from None
     click.echo(md)
     best = min((r for r in rows if r["orientation"] == "upright"), key=lambda r: r["mae"])
     click.echo(

@@ -11,8 +11,16 @@ from stillbox_gen.arguments import check_out_folder
 from stillbox_gen.conventions import MAX_DEPTH
 
 from ..video.multishift import BETA_MEAN, EMA_LAMBDA, MULTISHIFT_MAX_SHIFT
-from .limits import FLOAT, INT, RESOLUTION
-from .options import DEVICE_OPTION, UserError, dataset_dir, int_option, torch_device, user_error
+from .limits import FLOAT, INT, INTS, RESOLUTION
+from .options import (
+    DEVICE_OPTION,
+    UserError,
+    dataset_dir,
+    int_option,
+    locked_out,
+    torch_device,
+    user_error,
+)
 
 BETA_MEAN_OPTION = click.option(
     "--beta-mean",
@@ -160,7 +168,13 @@ def infer(input_: Path, res: tuple[int, int] | None, **o) -> None:
     show_default=True,
     help="Split of sequences to score.",
 )
-@click.option("--shifts", default="1,2,3", show_default=True, help="Pairs per frame to score, n.")
+@click.option(
+    "--shifts",
+    type=INTS,
+    default="1,2,3",  # multishift_eval.DEFAULT_SHIFT_COUNTS (not imported: torch)
+    show_default=True,
+    help="Comma-separated pairs per frame to score, n.",
+)
 @int_option("--max-shift", MULTISHIFT_MAX_SHIFT, "Largest frame shift; frames t >= it are scored.")
 @BETA_MEAN_OPTION
 @click.option("--scenes", type=INT, help="Score only the split's first N sequences.")
@@ -171,7 +185,7 @@ def eval_multishift(
     ckpts: tuple[Path, ...],
     data: Path,
     split: str,
-    shifts: str,
+    shifts: tuple[int, ...],
     max_shift: int,
     beta_mean: float,
     scenes: int | None,
@@ -188,18 +202,15 @@ def eval_multishift(
         if not ckpt.is_file():
             raise UserError(f"--ckpt: no such file '{ckpt}'")
     data = dataset_dir(data)
-    try:
-        counts = tuple(int(v) for v in shifts.split(","))
-    except ValueError:
-        raise UserError(f"--shifts: expected comma-separated integers, got '{shifts}'") from None
     check_out_folder(out, error=UserError)
     dev = torch_device(device)
-    try:  # checkpoints and data are checked before anything is written to --out
-        _, md = run_multishift(
-            list(ckpts), data, out, split, counts, max_shift, dev, beta_mean=beta_mean,
-            limit=scenes, progress=not quiet,
-        )  # fmt: skip
-    except ValueError as e:  # the library's names for --shifts and --scenes
-        raise user_error(e, counts="--shifts", limit="--scenes") from None
+    with locked_out(out):  # checkpoints and data are checked before --out is written
+        try:
+            _, md = run_multishift(
+                list(ckpts), data, out, split, shifts, max_shift, dev, beta_mean=beta_mean,
+                limit=scenes, progress=not quiet,
+            )  # fmt: skip
+        except ValueError as e:  # the library's names for --shifts and --scenes
+            raise user_error(e, counts="--shifts", limit="--scenes") from None
     click.echo(md)
     click.echo(f"results in {out}")

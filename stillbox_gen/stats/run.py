@@ -11,6 +11,7 @@ from ..arguments import check_out_folder
 from ..conventions import MAX_DEPTH, NOMINAL_SHIFT
 from ..dataset import Dataset
 from ..errors import ConfigError
+from ..lock import folder_lock
 from ..worker_setup import require_blender
 from .flicker import check_photos, config_of, flicker_stats
 from .measure import check_numbers, dataset_stats
@@ -19,7 +20,7 @@ from .report import plot
 
 def _check_out_folder(out: Path) -> None:
     """--out can be written: a folder, or a path whose nearest existing ancestor is a writable
-    folder (created after the measurements). ConfigError naming --out otherwise."""
+    folder (created by its lock, before the measurements). ConfigError naming --out otherwise."""
     check_out_folder(out, inside_dataset=True)  # stats.json and stats.png may sit at its root
     existing = next(p for p in (out, *out.absolute().parents) if p.exists())
     check_out_folder(existing, inside_dataset=True)
@@ -51,12 +52,11 @@ def run(
         # before measuring: they are re-rendered
         require_blender()
         check_photos(config_of(ds).materials, ds.scenes(limit=flicker), ds.root)
-    stats = dataset_stats(ds, scenes, shift, max_depth, progress)
-    stats["flicker"] = flicker_stats(ds, flicker, progress) if flicker else None
-    try:  # created only now: a refusal during the measurements leaves nothing behind
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise ConfigError(f"--out: cannot create '{out}' ({e.strerror})") from None
-    formats.atomic_write_json(out / "stats.json", stats, indent=2)
-    plot(stats, out / "stats.png")
+    # a second run writing into --out (or generate into the dataset, the default --out) is
+    # refused; --out is made by the lock and removed again if a refusal leaves it empty
+    with folder_lock(out, "--out"):
+        stats = dataset_stats(ds, scenes, shift, max_depth, progress)
+        stats["flicker"] = flicker_stats(ds, flicker, progress) if flicker else None
+        formats.atomic_write_json(out / "stats.json", stats, indent=2)
+        plot(stats, out / "stats.png")
     return stats
