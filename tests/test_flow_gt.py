@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 import pytest
 import torch
-from conftest import run_cli
+from conftest import TINY_SHARES, invoke_main, run_cli
 
 from stillbox_gen import formats, layout
 from stillbox_gen.dataset import Dataset
@@ -25,9 +25,14 @@ RUN = ("--res", 64, "--workers", 1, "--threads", 1, "--flow", "--quiet")
 
 @pytest.fixture(scope="module")
 def stabilised(tmp_path_factory) -> Path:
-    """Default preset (stabilised camera), 3 scenes of 10 frames, with --flow."""
+    """Default preset (stabilised camera), 3 scenes of 10 frames, one per split, with --flow."""
+    from stillbox_gen.manifest import split_of
+
+    splits = {"train", "val", "test"}
+    seed = next(s for s in range(100) if {split_of(s, k, TINY_SHARES) for k in range(3)} == splits)
     out = tmp_path_factory.mktemp("flow") / "stabilised"
-    run_cli(*RUN, "--scenes", 3, "--seed", 3, "--out", out)
+    run_cli(*RUN, "--scenes", 3, "--seed", seed, "--split", ",".join(map(str, TINY_SHARES)),
+            "--out", out)  # fmt: skip
     return out
 
 
@@ -200,3 +205,59 @@ def test_flow_pairs_are_consecutive_and_nominal_both_ways():
     assert flow_pairs(5) == [(0, 1), (1, 0), (1, 2), (2, 1), (2, 3), (3, 2), (3, 4), (4, 3),
                              (0, 3), (3, 0), (1, 4), (4, 1)]  # fmt: skip
     assert flow_pairs(2) == [(0, 1), (1, 0)]
+
+
+# ---------------------------------------------------------------- the benchmark scores flow on it
+
+
+def bench(*args) -> str:
+    """``stillbox-bench ARGS`` in this process; its stdout (the test fails on an error)."""
+    from benchmark import cli
+
+    result = invoke_main(cli.main, *args)
+    assert result.returncode == 0, result.stderr
+    return result.stdout
+
+
+@pytest.mark.render
+def test_flow_network_is_scored_against_the_stored_flow_and_saves_flo(stabilised, tmp_path):
+    """A FlowNetS run on a dataset with stored flow: its EPE and Fl-all are those of its saved
+    .flo predictions against the stored flow on the valid pixels (recomputed here in numpy), and
+    the report says which ground truth it used."""
+    out = tmp_path / "flownets"
+    bench("run", "flownets-flow-tiny", "--data", stabilised, "--batch-size", 4, "--max-steps",
+          2, "--quiet", "--save-predictions", "--out", out)  # fmt: skip
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["flow_ground_truth"].startswith("the dataset's stored flow")
+    assert "stored flow" in (out / "summary.md").read_text()
+    ds = Dataset(stabilised)
+    epe, fl = [], []
+    for row in csv_rows(out / "per_sample.csv"):
+        k, i1, i2 = int(row["scene"]), int(row["frame1"]), int(row["frame2"])
+        pred = formats.read_flo(out / "predictions" / layout.chunk_name(k)
+                                / layout.flow_name(layout.local_index(k), i2, i1))  # fmt: skip
+        truth, valid, _ = ds.scene(k).load_flow(i2, i1)
+        err = np.linalg.norm(pred.astype(np.float64) - truth, axis=-1)[valid]
+        size = np.linalg.norm(truth, axis=-1)[valid]
+        epe.append(err.mean())
+        fl.append(np.mean((err > 3) & (err > 0.05 * size)))
+        assert float(row["epe"]) == pytest.approx(epe[-1], rel=1e-5)
+    assert summary["metrics"]["epe"] == pytest.approx(np.mean(epe), rel=1e-5)
+    assert summary["metrics"]["fl_all"] == pytest.approx(np.mean(fl), abs=1e-9)
+
+
+@pytest.mark.render
+def test_oracle_flow_matches_the_stored_flow_on_a_stabilised_camera(stabilised, tmp_path):
+    """oracle-flow's exact flow (translation only, the second frame's depth) scored against the
+    stored flow: the two computations agree to float32 rounding."""
+    out = tmp_path / "oracle"
+    bench("run", "oracle-flow", "--data", stabilised, "--quiet", "--out", out)
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["flow_ground_truth"].startswith("the dataset's stored flow")
+    assert summary["metrics"]["epe"] < 1e-4 and summary["metrics"]["fl_all"] == 0
+
+
+def csv_rows(path: Path) -> list[dict]:
+    import csv
+
+    return list(csv.DictReader(path.open()))

@@ -29,6 +29,7 @@ in the dtype of their input (pass float64 for exact geometry).
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 
@@ -147,6 +148,19 @@ def depth_from_flow(
     if clamp:
         depth = torch.nan_to_num(depth, nan=max_depth).clamp(min_depth, max_depth)
     return depth[0] if single else depth
+
+
+def stored_flow(scenes: dict, pairs: list[tuple[int, int, int]]) -> torch.Tensor | None:
+    """The flow a dataset made with ``stillbox-gen --flow`` stores for ``pairs`` of (scene index,
+    frame a, frame b), ``(B, 2, H, W)`` float64 pixels on frame a's grid towards frame b (this
+    module's convention), NaN where the dataset's valid mask is false (the point leaves frame b
+    or is behind it; occluded points are kept). ``scenes``: {scene index:
+    stillbox_gen.dataset.Scene}. None when any pair has no stored flow. The stored flow uses the
+    full poses (exact for rotating cameras too): stillbox_gen.flow."""
+    if not pairs or any((a, b) not in scenes[k].flow_files for k, a, b in pairs):
+        return None
+    flows = [scenes[k].load_flow(a, b)[0] for k, a, b in pairs]
+    return torch.from_numpy(np.stack(flows).transpose(0, 3, 1, 2).astype(np.float64))
 
 
 def endpoint_error(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:

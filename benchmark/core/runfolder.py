@@ -48,7 +48,7 @@ import numpy as np
 import torch
 
 from stillbox_gen import layout
-from stillbox_gen.formats import TEMP_INFIX, atomic_write, atomic_write_text
+from stillbox_gen.formats import TEMP_INFIX, atomic_write, atomic_write_text, flo_bytes
 
 from .checkpoint import first_line
 from .errors import FieldError
@@ -311,6 +311,19 @@ def save_prediction(folder: Path, scene: int, frame: int, depth: np.ndarray) -> 
     ``frame`` (a scored pair's second frame) at full resolution, written atomically."""
     array = depth.astype(np.float32)
     atomic_write_binary(Path(folder) / prediction_name(scene, frame), lambda f: np.save(f, array))
+
+
+def flow_prediction_name(scene: int, a: int, b: int) -> str:
+    """``<chunk>/flow_<s>_<a>_<b>.flo``: a predicted flow from frame ``a`` to frame ``b`` of scene
+    ``scene`` (global index), the name the dataset gives its stored flow (stillbox_gen.layout)."""
+    return f"{layout.chunk_name(scene)}/{layout.flow_name(layout.local_index(scene), a, b)}"
+
+
+def save_flow_prediction(folder: Path, scene: int, a: int, b: int, flow: np.ndarray) -> None:
+    """:func:`flow_prediction_name` under ``folder``: a (2, H, W) flow in pixels on frame ``a``'s
+    grid towards frame ``b`` (channel 0 x right, 1 y down), as Middlebury .flo, atomically."""
+    data = flo_bytes(np.asarray(flow).transpose(1, 2, 0))
+    atomic_write_binary(Path(folder) / flow_prediction_name(scene, a, b), lambda f: f.write(data))
 
 
 def write_report(

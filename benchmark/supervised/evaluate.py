@@ -119,12 +119,24 @@ class EvalResult:
     per_sample: list[dict] = field(default_factory=list)
     pixels: dict[str, np.ndarray] = field(default_factory=dict)  # subsample for plots
     samples: list[dict] = field(default_factory=list)  # a few pairs for the sample grid
+    # flow methods: what their EPE was measured against, "stored" (the dataset's --flow files),
+    # "computed" (flow.flow_from_depth) or "stored, computed" (some pairs each); else None
+    flow_truth: str | None = None
 
 
 def _to_uint8(x: torch.Tensor) -> np.ndarray:
     """Inverse of the input normalisation, (3, H, W) -> (H, W, 3) uint8."""
     img = (x.numpy().transpose(1, 2, 0) * 0.2 + 0.5) * 255.0
     return np.clip(np.round(img), 0, 255).astype(np.uint8)
+
+
+def _flow_truth(scenes: dict, batch: dict) -> torch.Tensor | None:
+    """The dataset's stored flow of the batch's pairs (second frame -> first frame, what the
+    flow networks predict), None when the dataset does not hold it (flow.stored_flow)."""
+    pairs = [
+        (int(k), int(f[1]), int(f[0])) for k, f in zip(batch["scene"], batch["frames"], strict=True)
+    ]
+    return flow.stored_flow(scenes, pairs) if scenes else None
 
 
 @torch.inference_mode()
@@ -158,6 +170,9 @@ def evaluate(
     per_pair = max(1, plot_pixels // max(1, len(dataset)))
     if predictions_dir is not None:
         runfolder.make_folder(predictions_dir)
+    store = getattr(dataset, "store", None)
+    scenes = {s.index: s for s in getattr(store, "scenes", [])}
+    truths: set[str] = set()
     for batch in loader:
         gt = batch["target"].to(device)
         h, w = gt.shape[-2:]
@@ -173,7 +188,10 @@ def evaluate(
             with_gt = metrics.image_metrics(out["depth_gt"], gt)
             m.update({f"gt_{k}": v for k, v in with_gt.items() if k != "valid_pixels"})
         if "flow" in out:
-            m.update(flow.flow_errors(out["flow"], out["gt_flow"]))
+            truth = _flow_truth(scenes, batch)
+            truths.add("computed" if truth is None else "stored")
+            truth = out["gt_flow"] if truth is None else truth.to(device)
+            m.update(flow.flow_errors(out["flow"], truth))
         for k, v in m.items():
             per_image.setdefault(k, []).append(v.cpu())
         pred, gt = pred.cpu(), gt.cpu()
@@ -189,6 +207,9 @@ def evaluate(
             )
             if predictions_dir is not None:
                 runfolder.save_prediction(predictions_dir, scene, i2, pred[b].numpy())
+                if "flow" in out:
+                    f = out["flow"][b].cpu().numpy()
+                    runfolder.save_flow_prediction(predictions_dir, scene, i2, i1, f)
             if not collect:
                 continue
             K, t = batch["K"][b].numpy().astype(np.float64), batch["translation"][b].numpy()
@@ -223,4 +244,5 @@ def evaluate(
         per_sample=rows,
         pixels={k: np.concatenate(v) for k, v in pix.items() if v},
         samples=samples,
+        flow_truth=", ".join(sorted(truths, reverse=True)) or None,
     )

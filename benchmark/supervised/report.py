@@ -41,9 +41,17 @@ DEPTH_ERROR_FORMULA = (
 )
 EPE_FORMULA = (
     "EPE = E‖F̃ − F‖₂ (pixels) at full resolution (the 1/4 flow upsampled bilinearly) against the "
-    "exact flow of the second frame's pixels towards the first frame, over pixels whose point is "
-    "in front of both cameras; per image, then averaged like the other metrics"
+    "exact flow of the second frame's pixels towards the first frame (flow_ground_truth), over "
+    "its valid pixels; per image, then averaged like the other metrics"
 )
+#: summary.json's "flow_ground_truth" of a flow method, by EvalResult.flow_truth
+FLOW_TRUTH = {
+    "stored": "the dataset's stored flow (stillbox-gen --flow: from depth and full poses), on "
+    "its valid pixels (landing inside the first frame; occluded pixels included)",
+    "computed": "the flow computed from the second frame's depth and the pair's translation "
+    "(benchmark.core.flow.flow_from_depth; a stabilised camera), on pixels whose point is in "
+    "front of both cameras",
+}
 _CLAMP = f"[{metrics.MIN_DEPTH:g}, {MAX_DEPTH:g}]"
 #: summary.json's "scale": how each way of scoring (registry.Scoring) turns outputs into metres
 SCALE_RULES = {
@@ -161,6 +169,11 @@ def summarize(
     formulas = {**metrics.FORMULAS, "depth_error": DEPTH_ERROR_FORMULA}
     if "epe" in result.summary:
         formulas.update(epe=EPE_FORMULA, **flow.FLOW_FORMULAS)
+    if result.flow_truth:
+        info = {
+            **info,
+            "flow_ground_truth": "; ".join(FLOW_TRUTH[t] for t in result.flow_truth.split(", ")),
+        }
     return {
         "model": model,
         "output": kind.name,
@@ -193,6 +206,11 @@ def summary_markdown(summary: dict) -> str:
         "",
         f"Depth: {summary['scale']}.",
         "",
+        *(
+            [f"Flow (EPE, Fl-all) against {summary['flow_ground_truth']}.", ""]
+            if summary.get("flow_ground_truth")
+            else []
+        ),
         "Error by distance to the focus of expansion (pixel subsample of `pixels.npz`; lateral "
         "pairs, FOE at infinity, left out):",
         "",
