@@ -289,7 +289,7 @@ class RenderConfig:
         ),
     )
     # also write optical flow, validity and occlusion masks of each frame pair of
-    # stillbox_gen.flow.flow_pairs, computed from the rendered depth and the poses (docs/FORMAT.md)
+    # stillbox_gen.layout.flow_pairs, from the rendered depth and the poses (docs/FORMAT.md)
     flow: bool = field(
         default=False,
         metadata=flag(

@@ -24,12 +24,7 @@ import numpy as np
 
 from . import formats
 from .camera import backproject, invert_pose
-from .conventions import NOMINAL_SHIFT
-from .layout import flow_name, flow_occluded_name, flow_valid_name
 
-#: Frame shifts s of the pairs written by --flow: (t, t + s) and (t + s, t) for every t; 1 is
-#: the consecutive pair, NOMINAL_SHIFT the benchmark's pair (i, i + 3).
-FLOW_SHIFTS = (1, NOMINAL_SHIFT)
 #: A valid point is occluded in frame b when its depth there exceeds frame b's rendered depth
 #: by more than this share of it, both at the pixel it lands in and interpolated at the landing
 #: point (flow_masks).
@@ -43,18 +38,6 @@ class PairFlow:
     flow: np.ndarray  # (H, W, 2) float32 pixels; NaN where undefined (behind camera b)
     valid: np.ndarray  # bool: defined, in front of camera b and landing inside frame b
     occluded: np.ndarray  # bool: valid and hidden in frame b (false where not valid)
-
-
-def flow_pairs(frames: int, shifts: tuple[int, ...] = FLOW_SHIFTS) -> list[tuple[int, int]]:
-    """Frame pairs ``(a, b)`` of a scene of ``frames`` frames that --flow writes: for each shift
-    s < frames and each t, ``(t, t + s)`` then ``(t + s, t)``; ordered by shift, then t."""
-    return [
-        pair
-        for s in dict.fromkeys(shifts)
-        if 0 < s < frames
-        for t in range(frames - s)
-        for pair in ((t, t + s), (t + s, t))
-    ]
 
 
 def relative_pose(cam2world_a: np.ndarray, cam2world_b: np.ndarray) -> np.ndarray:
@@ -142,21 +125,6 @@ def pair_flow(
     flow, z_b = flow_from_depth(depth_a, K, relative_pose(cam2world_a, cam2world_b))
     valid, occluded = flow_masks(flow, z_b, depth_b)
     return PairFlow(flow.astype(np.float32), valid, occluded)
-
-
-def flow_entries(local: int, frames: int) -> list[dict]:
-    """The ``flow`` list of a scene record (docs/FORMAT.md): one entry per pair of
-    :func:`flow_pairs`, ``{"from": a, "to": b, "flow": name, "valid": name, "occluded": name}``."""
-    return [
-        {
-            "from": a,
-            "to": b,
-            "flow": flow_name(local, a, b),
-            "valid": flow_valid_name(local, a, b),
-            "occluded": flow_occluded_name(local, a, b),
-        }
-        for a, b in flow_pairs(frames)
-    ]
 
 
 def write_scene_flow(folder: Path, record: dict) -> None:

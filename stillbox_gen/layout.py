@@ -22,6 +22,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from .conventions import NOMINAL_SHIFT
+
 CHUNK_SIZE = 200  # scenes per chunk folder (the original StillBox layout)
 DATASET_JSON = "dataset.json"
 MANIFEST = "manifest.parquet"
@@ -86,7 +88,39 @@ def flow_occluded_name(local: int, a: int, b: int) -> str:
     return f"occluded_{local:04d}_{a:02d}_{b:02d}.png"
 
 
-#: the file keys of an entry of a record's ``flow`` list (stillbox_gen.flow.flow_entries)
+#: Frame shifts s of the pairs written by --flow: (t, t + s) and (t + s, t) for every t; 1 is
+#: the consecutive pair, NOMINAL_SHIFT the benchmark's pair (i, i + 3).
+FLOW_SHIFTS = (1, NOMINAL_SHIFT)
+
+
+def flow_pairs(frames: int, shifts: tuple[int, ...] = FLOW_SHIFTS) -> list[tuple[int, int]]:
+    """Frame pairs ``(a, b)`` of a scene of ``frames`` frames that --flow writes: for each shift
+    s < frames and each t, ``(t, t + s)`` then ``(t + s, t)``; ordered by shift, then t."""
+    return [
+        pair
+        for s in dict.fromkeys(shifts)
+        if 0 < s < frames
+        for t in range(frames - s)
+        for pair in ((t, t + s), (t + s, t))
+    ]
+
+
+def flow_entries(local: int, frames: int) -> list[dict]:
+    """The ``flow`` list of a scene record (docs/FORMAT.md): one entry per pair of
+    :func:`flow_pairs`, ``{"from": a, "to": b, "flow": name, "valid": name, "occluded": name}``."""
+    return [
+        {
+            "from": a,
+            "to": b,
+            "flow": flow_name(local, a, b),
+            "valid": flow_valid_name(local, a, b),
+            "occluded": flow_occluded_name(local, a, b),
+        }
+        for a, b in flow_pairs(frames)
+    ]
+
+
+#: the file keys of an entry of a record's ``flow`` list (:func:`flow_entries`)
 FLOW_KEYS = ("flow", "valid", "occluded")
 
 

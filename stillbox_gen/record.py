@@ -16,8 +16,7 @@ from dataclasses import asdict, dataclass, fields
 
 from . import camera, portable
 from .errors import ConfigError
-from .flow import flow_entries
-from .layout import depth_name, local_index, rgb_name
+from .layout import depth_name, flow_entries, local_index, rgb_name
 
 
 @dataclass
@@ -115,7 +114,7 @@ def scene_record(spec: dict, image_format: str, legacy: bool, flow: bool = False
 
     Original StillBox keys first (imgs, depth, speed, time_step, length, orientation), then ours;
     with ``flow`` (--flow), ``flow`` lists the flow and mask files of each frame pair
-    (stillbox_gen.flow.flow_entries); ``sha256`` ({file name: digest}) is added last, once the
+    (stillbox_gen.layout.flow_entries); ``sha256`` ({file name: digest}) is added last, once the
     files are written.
     """
     cam = spec["camera"]

@@ -12,7 +12,7 @@ _mat = {"type": "array", "items": {"type": "array", "items": _num}}
 _mat4 = {**_mat, "minItems": 4, "maxItems": 4}
 _names = {"type": "array", "items": {"type": "string", "pattern": r"^[^/_]+_\d+_\d+\.\w+$"}}
 _frame = {"type": "integer", "minimum": 0}
-# --flow: one entry per frame pair (stillbox_gen.flow.flow_entries, layout.flow_name & co.)
+# --flow: one entry per frame pair (stillbox_gen.layout.flow_entries)
 _flow_entry = {
     "type": "object",
     "required": ["from", "to", "flow", "valid", "occluded"],

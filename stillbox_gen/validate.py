@@ -22,8 +22,7 @@ import numpy as np
 
 from . import config, formats, layout, manifest, schema
 from .errors import DatasetError
-from .flow import flow_entries
-from .layout import DATASET_JSON, MANIFEST
+from .layout import DATASET_JSON, MANIFEST, flow_entries
 from .scene import scene_seed
 
 

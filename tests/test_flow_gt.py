@@ -17,7 +17,8 @@ from conftest import TINY_SHARES, invoke_main, run_cli
 from stillbox_gen import formats, layout
 from stillbox_gen.dataset import Dataset
 from stillbox_gen.errors import DatasetError
-from stillbox_gen.flow import FLOW_SHIFTS, OCCLUSION_TOLERANCE, flow_pairs
+from stillbox_gen.flow import OCCLUSION_TOLERANCE
+from stillbox_gen.layout import FLOW_SHIFTS, flow_pairs
 from stillbox_gen.validate import validate_dataset
 
 RUN = ("--res", 64, "--workers", 1, "--threads", 1, "--flow", "--quiet")
@@ -244,6 +245,11 @@ def test_flow_network_is_scored_against_the_stored_flow_and_saves_flo(stabilised
         assert float(row["epe"]) == pytest.approx(epe[-1], rel=1e-5)
     assert summary["metrics"]["epe"] == pytest.approx(np.mean(epe), rel=1e-5)
     assert summary["metrics"]["fl_all"] == pytest.approx(np.mean(fl), abs=1e-9)
+    given = tmp_path / "given"  # the saved folder, flow files beside the depth, reads back
+    bench("eval", "--predictions", out / "predictions", "--data", stabilised,
+          "--out", given)  # fmt: skip
+    again = json.loads((given / "summary.json").read_text())["metrics"]
+    assert again["mae"] == pytest.approx(summary["metrics"]["mae"], rel=1e-5)
 
 
 @pytest.mark.render

@@ -32,6 +32,8 @@ from ..core.runfolder import prediction_name
 PNG_SCALE = 256.0  # PNG units per metre (KITTI depth maps)
 EXTENSIONS = ("npy", "png")
 _NAME = re.compile(r"(\d+)/depth_(\d{4})_(\d{2})\.(" + "|".join(EXTENSIONS) + ")")
+#: a flow method's predicted flow, saved beside its depth (runfolder.flow_prediction_name): skipped
+_FLOW_NAME = re.compile(r"\d+/flow_\d{4}_\d{2}_\d{2}\.flo")
 
 
 def read_prediction(path: Path) -> np.ndarray:
@@ -97,6 +99,8 @@ class PredictionFiles:
             for name in sorted(files):
                 path = Path(folder) / name
                 rel = path.relative_to(self.root).as_posix()
+                if _FLOW_NAME.fullmatch(rel) and not path.is_symlink():
+                    continue  # a flow method's flow (--save-predictions): not depth
                 match = _NAME.fullmatch(rel)
                 if path.is_symlink():
                     raise FieldError("predictions", f"'{path}' is a symlink")
