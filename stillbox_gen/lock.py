@@ -135,9 +135,10 @@ def _release(fd: int, path: Path) -> None:
 
 @contextlib.contextmanager
 def folder_lock(folder: Path, what: str, shard: tuple[int, int] = (0, 1)) -> Iterator[None]:
-    """Hold the lock of ``folder`` (created when missing, and removed again at the end if it is
-    then empty) for the block; ``what`` names it in messages (e.g. "--out"); ``shard`` is the
-    (I, N) of ``generate --shard`` ((0, 1): the whole folder).
+    """Hold the lock of ``folder`` (created when missing with its missing parents, which are
+    removed again at the end if they are then empty) for the block; ``what`` names it in
+    messages (e.g. "--out"); ``shard`` is the (I, N) of ``generate --shard`` ((0, 1): the whole
+    folder).
 
     Raises FolderInUse (a ConfigError) when another process holds it, ConfigError when the folder
     cannot be created or written. Nothing is written into the folder but the lock file.
@@ -151,7 +152,8 @@ def folder_lock(folder: Path, what: str, shard: tuple[int, int] = (0, 1)) -> Ite
         finally:
             _HELD[key] -= 1
         return
-    created = not folder.exists()
+    # the folders this lock makes, deepest first: removed again at the end while they are empty
+    created = [p for p in (folder, *folder.absolute().parents) if not p.exists()]
     if folder.exists() and not folder.is_dir():
         raise ConfigError(f"{what}: '{folder}' exists and is a file, not a folder")
     try:
@@ -162,9 +164,7 @@ def folder_lock(folder: Path, what: str, shard: tuple[int, int] = (0, 1)) -> Ite
     try:
         fd = _acquire(path, what, folder, shard)
     except BaseException:
-        if created:
-            with contextlib.suppress(OSError):
-                folder.rmdir()
+        _remove_empty(created)
         raise
     _HELD[key] = 1
     try:
@@ -172,6 +172,13 @@ def folder_lock(folder: Path, what: str, shard: tuple[int, int] = (0, 1)) -> Ite
     finally:
         del _HELD[key]
         _release(fd, path)
-        if created:
-            with contextlib.suppress(OSError):
-                folder.rmdir()  # only when empty: a run refused before writing anything
+        _remove_empty(created)  # only when empty: a run refused before writing anything
+
+
+def _remove_empty(folders: list[Path]) -> None:
+    """Remove ``folders`` (deepest first) while each is empty; stop at the first that is not."""
+    for f in folders:
+        try:
+            f.rmdir()
+        except OSError:
+            return
