@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import json
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -14,6 +15,7 @@ from test_bench import bench
 
 from benchmark.core import registry
 from benchmark.core.data import FrameStore, load_scenes
+from benchmark.core.errors import FieldError
 from benchmark.core.posenet import INITIAL_DEPTH, DepthPoseNet, PoseNet
 from benchmark.unsupervised.reprojection import gradient_diffusion_loss
 from benchmark.unsupervised.sequences import SequenceDataset
@@ -25,6 +27,7 @@ from benchmark.unsupervised.training import (
     normalise_translations,
     reference_indices,
     smooth_settings,
+    video_training,
 )
 
 WEIGHTS = registry.UNSUPERVISED_RECIPE.loss_weights
@@ -188,6 +191,37 @@ def test_training_steps_lower_the_loss(sequences):
         step(batch)
     last = step.losses(batch)["loss"].item()
     assert np.isfinite(first) and last < 0.8 * first, (first, last)
+
+
+def _video_cfg(model: str, known_motion: bool | None) -> SimpleNamespace:
+    """The TrainConfig fields video_training reads, at the recipe's values."""
+    return SimpleNamespace(
+        model=model, sequence_length=5, shift=3, seed=0, smooth_weight=None, smooth_kappa=None,
+        occlusion=False, loss_weights=WEIGHTS, pose="translation", data="d",
+        known_motion=known_motion,
+    )  # fmt: skip
+
+
+def test_known_motion_warps_with_the_datasets_translations(sequences):
+    """run --known-motion: the step warps with the batch's true translations normalised to d0
+    at the reference, whatever PoseNet outputs; without it, with PoseNet's. Refused for a
+    method without the displacement's scale (sfmlearner)."""
+    cpu, store = torch.device("cpu"), sequences.store
+    torch.manual_seed(0)
+    net = registry.build_model("depthnet-unsup-tiny")
+    batch = sequences.batch([0, 4, 8], 0)
+    known = normalise_translations(-batch["translation"], batch["reference_index"], 0.3)
+    used = {}
+    for flag in (True, None):
+        step = video_training(_video_cfg("depthnet-unsup-tiny", flag), net, None, cpu, store, 0.3)[
+            1
+        ]
+        with torch.no_grad():
+            used[flag] = step.losses(batch)["translations"]
+    torch.testing.assert_close(used[True], known)
+    assert not torch.allclose(used[None], known, atol=1e-3)
+    with pytest.raises(FieldError, match="stabilised data"):
+        video_training(_video_cfg("sfmlearner-tiny", True), net, None, cpu, store, 0.3)
 
 
 def _one_line(proc, word: str) -> None:

@@ -335,6 +335,19 @@ class TrainConfig:
             parse=lambda given: given or None,
         ),
     )
+    known_motion: bool | None = setting(
+        None,
+        flag=Flag(
+            "--known-motion",
+            {
+                "run": "depthnet-unsup on stabilised data: the dataset's camera translations "
+                "replace PoseNet's in the photometric loss's warps (a control: depth learnt "
+                "with the motion given, as finetune --known-motion)."
+            },
+            kind="flag",
+            parse=lambda given: given or None,
+        ),
+    )
     smooth_weight: float | None = setting(None, recipe=True)
     smooth_kappa: float | None = setting(None, recipe=True)
     pose: str | None = setting(

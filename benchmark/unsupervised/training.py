@@ -307,9 +307,14 @@ def video_training(cfg, net, opt, device, store, d0: float, autocast=None):
                 "shift", f"'{cfg.model}' is scaled by PoseNet over sequences of "
                 f"{cfg.sequence_length} frames: pairs closer than that, got {cfg.shift}",
             )  # fmt: skip
+    if cfg.known_motion and (d0 is None or cfg.pose != "translation"):
+        raise FieldError(
+            "known_motion", f"is for stabilised data (--pose translation) and a method scaled "
+            f"by the displacement (depthnet-unsup); got '{cfg.model}' with --pose {cfg.pose}",
+        )  # fmt: skip
     lam, kappa = smooth_settings(cfg.smooth_weight, cfg.smooth_kappa, bool(cfg.occlusion))
     step = PhotometricStep(
         net, opt, device, cfg.loss_weights, d0, lam, kappa, bool(cfg.occlusion), autocast,
-        cfg.pose,
+        cfg.pose, known_translation=bool(cfg.known_motion),
     )  # fmt: skip
     return SequenceDataset(store, cfg.sequence_length, cfg.seed), step
