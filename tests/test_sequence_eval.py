@@ -34,7 +34,7 @@ from benchmark.unsupervised.sequence_eval import (
     scene_windows,
     upside_down,
 )
-from benchmark.unsupervised.sequence_report import THESIS_ROWS, thesis_row
+from benchmark.unsupervised.sequence_report import POSE_HEADER, THESIS_ROWS, markdown, thesis_row
 from benchmark.unsupervised.training import EPSILON
 from stillbox_gen.dataset import Dataset
 
@@ -304,6 +304,18 @@ def test_eval_sequences_end_to_end(tiny_dataset, rotating_dataset, tmp_path):
     md = (out / "results.md").read_text()
     assert "| Unsupervised DepthNet | depthnet-unsup-tiny | tiny | P | ✗ | ✗ |" in md
     assert "| *thesis Table 5.3* | | S → K | P | ✗ |" in md and "## Upside down" in md
+    # PoseNet's translation direction: a cosine and a share for the networks with a PoseNet,
+    # empty for the constant plane (null in results.json); a row without the columns (an older
+    # results file) shows an empty cell
+    for r, j in zip(rows, info["rows"], strict=True):
+        if r["model"] == "constant":
+            assert r["pose_cosine"] == r["pose_cosine_gt_0.9"] == "" and j["pose_cosine"] is None
+        else:
+            assert -1 <= float(r["pose_cosine"]) <= 1 and 0 <= float(r["pose_cosine_gt_0.9"]) <= 1
+            assert j["pose_cosine"] == pytest.approx(float(r["pose_cosine"]))
+    assert f"| {POSE_HEADER} | pair chosen" in md
+    old = [{k: v for k, v in r.items() if not k.startswith("pose_cosine")} for r in info["rows"]]
+    assert f"{old[1]['p1.25^3']:.3f} |  | " in markdown(old, info)
     # bad input: one line naming the flag, --out not created
     no = tmp_path / "no"
     base = ["--data", rotating_dataset, "--out", no]

@@ -20,10 +20,15 @@ sequence_eval's windows, and every expected number is computed here in numpy.
 - A perfect DepthNet saturating at 100 m at d0 (the supervised recipe's clipped targets) scores
   zero with the fixed pair but not with "P" on near scenes: the thesis' rule keeps a pair
   shorter than d0 whose far pixels saturate; the score is that of the pair it keeps.
+- PoseNet's translation direction (``pose_cosine``, ``pose_cosine_gt_0.9``): an oracle PoseNet
+  answering the true translations scores cosine 1 and share 1, the negated ones −1 and 0, one
+  with a fixed error the numpy cosines at the references each row keeps; rows without PoseNet
+  (supervised DepthNet, constant plane) have the columns empty.
 """
 
 from __future__ import annotations
 
+import csv
 from pathlib import Path
 
 import numpy as np
@@ -34,6 +39,8 @@ from benchmark.core import registry
 from benchmark.core.posenet import euler_matrix
 from benchmark.unsupervised.sequence_eval import (
     PAIR_TARGET_DEPTH,
+    POSE_COSINE,
+    POSE_COSINE_SHARE,
     SCALE_GT,
     SCALE_P,
     SCALE_P_FIXED,
@@ -46,6 +53,7 @@ from benchmark.unsupervised.sequence_eval import (
     scene_windows,
     upside_down,
 )
+from benchmark.unsupervised.sequence_report import write_results
 from stillbox_gen.conventions import MAX_DEPTH
 from stillbox_gen.dataset import Dataset
 
@@ -184,6 +192,11 @@ class Truth:
         R = self.scenes[k].relative_pose(i, j)[:3, :3]
         return FLIP @ R @ FLIP if flipped else R
 
+    def translation(self, k: int, i: int, j: int, flipped: bool) -> np.ndarray:
+        """τ with X_j = R·X_i + τ (metres, frame j's axes; F·τ upside down)."""
+        tau = self.scenes[k].relative_pose(i, j)[:3, 3]
+        return FLIP @ tau if flipped else tau
+
     def distance(self, k: int, i: int, j: int) -> float:
         """Metres between the cameras of frames i and j (world positions of the record)."""
         c = np.asarray(self.scenes[k].cam2world, np.float64)[:, :3, 3]
@@ -195,14 +208,25 @@ class Truth:
                 for k, s in enumerate(self.scenes) for t in range(4, s.frames)]  # fmt: skip
 
 
+def oracle_translations(truth: Truth, sequence: torch.Tensor, sign: float, offset) -> np.ndarray:
+    """``(N, 3)``: ``sign`` × the true τ_i of a sequence (X_i = R_i·X_t + τ_i, t its last frame,
+    recognised by its pixels) + ``offset`` (metres, frame i's axes)."""
+    n = sequence.shape[1] // 3
+    k, t, flipped = truth.where[frame_key(denormalise(sequence[0, -3:]))]
+    tau = np.stack([truth.translation(k, t, i, flipped) for i in range(t - n + 1, t + 1)])
+    return sign * tau + np.asarray(offset, np.float64)
+
+
 class OraclePoseNet(torch.nn.Module):
     """A PoseNet answering the true poses of a sequence of N frames ending with frame t:
     ``(1, N, 6)``, τ_i then R_i's Euler angles in radians (core.posenet's convention,
-    X_i = R_i·X_t + τ_i, R_i = euler_matrix(angles)); t recognised by its pixels (``truth``)."""
+    X_i = R_i·X_t + τ_i, R_i = euler_matrix(angles)); t recognised by its pixels (``truth``).
+    Its translations are :func:`oracle_translations` (``sign`` 0 by default: zero, the
+    stabilisation does not read them), t's row zero."""
 
-    def __init__(self, truth: Truth):
+    def __init__(self, truth: Truth, sign: float = 0.0, offset=(0.0, 0.0, 0.0)):
         super().__init__()
-        self.truth = truth
+        self.truth, self.sign, self.offset = truth, sign, offset
 
     def forward(self, sequence: torch.Tensor) -> torch.Tensor:
         assert sequence.shape[0] == 1
@@ -213,7 +237,8 @@ class OraclePoseNet(torch.nn.Module):
         angles = np.stack([euler_angles(r) for r in R])
         # the decomposition is euler_matrix's inverse
         np.testing.assert_allclose(euler_matrix(torch.from_numpy(angles)).numpy(), R, atol=1e-12)
-        tau = np.zeros((n, 3))  # translations: unused by the stabilisation
+        tau = oracle_translations(self.truth, sequence, self.sign, self.offset)
+        tau[-1] = 0.0  # PoseNet's last row is exactly zero
         return torch.from_numpy(np.concatenate([tau, angles], 1)).float()[None]
 
 
@@ -277,11 +302,12 @@ class PerfectDepthNet(torch.nn.Module):
 class PerfectSfmLearner(torch.nn.Module):
     """What an ideal SFMLearner answers: t's true depth / ``unit`` (its scale is free: any unit),
     at full resolution, and a PoseNet giving the true translations τ_i (X_i = R_i·X_t + τ_i,
-    the reader's relative pose; F·τ upside down) in the same unit; t recognised by its pixels."""
+    the reader's relative pose; F·τ upside down; + ``offset`` metres) in the same unit; t
+    recognised by its pixels."""
 
-    def __init__(self, truth: Truth, unit: float):
+    def __init__(self, truth: Truth, unit: float, offset=(0.0, 0.0, 0.0)):
         super().__init__()
-        self.truth, self.unit = truth, unit
+        self.truth, self.unit, self.offset = truth, unit, offset
 
     def forward(self, pair: torch.Tensor) -> list[torch.Tensor]:
         k, t, flipped = self.truth.where[frame_key(denormalise(pair[0, 3:]))]
@@ -289,12 +315,9 @@ class PerfectSfmLearner(torch.nn.Module):
         return [torch.from_numpy(depth.copy()).float()[None, None]]
 
     def pose(self, sequence: torch.Tensor) -> torch.Tensor:
-        n = sequence.shape[1] // 3
-        k, t, flipped = self.truth.where[frame_key(denormalise(sequence[0, -3:]))]
-        tau = np.stack(
-            [self.truth.scenes[k].relative_pose(t, i)[:3, 3] for i in range(t - n + 1, t + 1)]
-        )
-        tau = tau @ FLIP if flipped else tau
+        """The true τ_i (+ ``offset``, metres), t's row zero, in the network's unit."""
+        tau = oracle_translations(self.truth, sequence, 1.0, self.offset)
+        tau[-1] = 0.0
         return torch.from_numpy(tau / self.unit).float()[None]
 
 
@@ -494,3 +517,102 @@ def test_a_perfect_depthnet_saturating_at_100_m_scores_what_its_chosen_pair_lose
                 assert p[k] == pytest.approx(want[k], rel=1e-5, abs=1e-7), (data, o, k, p)
             maes[data] = p["mae"]
     assert maes["rotating"] > 5.0, maes
+
+
+#: a PoseNet error (metres, in each frame's axes) added to the true translations: the cosine
+#: then depends on the reference (0.1 to 0.4 m from t), so its expected value checks which one a
+#: row reads
+OFFSET = (0.04, -0.03, 0.05)
+
+
+def numpy_cosines(truth: Truth, o: str, reference, sign: float = 1.0, offset=OFFSET) -> np.ndarray:
+    """Per window (sequence_eval's order), the cosine between ``sign`` × the true τ_r + ``offset``
+    and the true τ_r, r = ``reference(k, t, flipped)`` (a frame of scene k), float64."""
+    flipped, out = o == UPSIDE_DOWN, []
+    for k, s in enumerate(truth.scenes):
+        for t in range(4, s.frames):
+            tau = truth.translation(k, t, reference(k, t, flipped), flipped)
+            ours = sign * tau + np.asarray(offset)
+            out.append(ours @ tau / (np.linalg.norm(ours) * np.linalg.norm(tau)))
+    return np.array(out)
+
+
+def p_reference(truth: Truth, d0: float):
+    """The frame the perfect DepthNet's "P" rule keeps: mean output (mean depth × d0 / ‖t_r‖)
+    closest to 50 m."""
+
+    def reference(k: int, t: int, flipped: bool) -> int:
+        moved = np.array([truth.distance(k, t, t - 4 + r) for r in range(4)])
+        means = truth.depth(k, t, flipped).mean() * D0 / moved
+        return t - 4 + int(np.argmin(np.abs(means - PAIR_TARGET_DEPTH)))
+
+    return reference
+
+
+def posenet_models(truth: Truth, pose: str) -> dict[str, EvalModel]:
+    """Perfect networks with a PoseNet answering the true translations (``true``, 3- and 6-DoF
+    rows), their negation (``negated``), or them + OFFSET (``offset``, and ``sfm-offset``: an
+    SFMLearner); a supervised DepthNet (whose oracle has a PoseNet it is never asked) and the
+    constant plane."""
+
+    def depthnet(name: str, mode: str, sign: float, offset=(0.0, 0.0, 0.0)) -> EvalModel:
+        net = PerfectDepthNet(truth, D0)
+        net.pose = OraclePoseNet(truth, sign, offset)
+        return EvalModel(name, registry.UNSUPERVISED, net, d0=D0, pose=mode)
+
+    sfm = PerfectSfmLearner(truth, 7.0, OFFSET)
+    return {
+        "constant": constant_plane(),
+        "supervised": EvalModel("depthnet-tiny", registry.DEPTH, PerfectDepthNet(truth, D0), d0=D0),
+        "true": depthnet("depthnet-unsup-tiny", pose, 1.0),
+        "true 6-DoF": depthnet("depthnet-unsup-6dof-tiny", "6dof", 1.0),
+        "negated": depthnet("depthnet-unsup-tiny", pose, -1.0),
+        "negated 6-DoF": depthnet("depthnet-unsup-6dof-tiny", "6dof", -1.0),
+        "offset": depthnet("depthnet-unsup-tiny", pose, 1.0, OFFSET),
+        "sfm-offset": EvalModel("sfmlearner-tiny", registry.SCALE_FREE, sfm),
+    }
+
+
+@pytest.mark.parametrize("data", ["stabilised", "rotating", "off-centre"])
+def test_posenet_translation_direction_is_scored_against_the_true_one(truths, data, tmp_path):
+    """Upright and upside down, every scale: PoseNet answering the true translations scores
+    cosine 1 (1e-5) and share 1, the negated ones −1 and share 0 (3- and 6-DoF); with OFFSET
+    added, the mean and share of the numpy cosines at the reference each row keeps ("P": mean
+    output closest to 50 m; "P (fixed pair)": 0.3 m = d0 away, 3 frames; SFMLearner: the
+    window's first frame). The supervised DepthNet and the constant plane have None, and
+    results.csv's ``pose_cosine`` and ``pose_cosine_gt_0.9`` are empty there."""
+    truth = truths[data]
+    models = posenet_models(truth, "translation" if data == "stabilised" else "orientation")
+    rows = evaluate(list(models.values()), truth.scenes, CPU, BOTH, progress=False)
+    keys = [(o, name, scale) for o in BOTH for name, m in models.items() for scale in m.scales]
+    got = dict(zip(keys, rows, strict=True))  # evaluate's order: orientation, model, scale
+    assert all((r["orientation"], r["scale"]) == (k[0], k[2]) for k, r in got.items())
+    for o in BOTH:
+        for name in ("true", "true 6-DoF", "negated", "negated 6-DoF"):
+            for scale in (SCALE_P, SCALE_P_FIXED):
+                r = got[o, name, scale]
+                want = 1.0 if name.startswith("true") else -1.0
+                assert r[POSE_COSINE] == pytest.approx(want, abs=1e-5), (name, r)
+                assert r[POSE_COSINE_SHARE] == (1.0 if want > 0 else 0.0), (name, r)
+        fixed = numpy_cosines(truth, o, lambda k, t, f: t - 3)
+        chosen = numpy_cosines(truth, o, p_reference(truth, D0))
+        first = numpy_cosines(truth, o, lambda k, t, f: t - 4)
+        for key, cos in (
+            (("offset", SCALE_P), chosen), (("offset", SCALE_P_FIXED), fixed),
+            (("sfm-offset", SCALE_P), first), (("sfm-offset", SCALE_GT), first),
+        ):  # fmt: skip
+            assert got[o, *key][POSE_COSINE] == pytest.approx(cos.mean(), abs=1e-5), key
+            assert got[o, *key][POSE_COSINE_SHARE] == pytest.approx((cos > 0.9).mean()), key
+        assert not np.allclose(fixed, first)  # the references tell the rows apart
+        for name, scale in (("constant", SCALE_GT), ("supervised", SCALE_P),
+                            ("supervised", SCALE_P_FIXED)):  # fmt: skip
+            assert got[o, name, scale][POSE_COSINE] is None
+            assert got[o, name, scale][POSE_COSINE_SHARE] is None
+    info = {"data": data, "split": "test", "scenes": len(truth.scenes), "sequence_length": 5,
+            "pair_target_depth_m": PAIR_TARGET_DEPTH, "rotating": data != "stabilised",
+            "orientations": list(BOTH), "averaging_rule": ""}  # fmt: skip
+    write_results(tmp_path, rows, info)
+    written = list(csv.DictReader((tmp_path / "results.csv").read_text().splitlines()))
+    for r in written:
+        empty = r["model"] in ("constant", "depthnet-tiny")
+        assert (r["pose_cosine"] == "") == empty and (r["pose_cosine_gt_0.9"] == "") == empty, r

@@ -436,8 +436,9 @@ def finetune_cmd(
     of the last frame of every {SEQUENCE_LENGTH}-frame sequence, from the pair whose mean DepthNet
     output is closest to {PAIR_TARGET_DEPTH:g} m (frames stabilised by the known orientation, or
     PoseNet's for 6-DoF networks), scaled by the measured displacement (P); SFMLearner scaled by
-    PoseNet (P) and by the ground-truth median (GT); a constant plane (GT). Writes results.md
-    (the thesis' numbers beside), .csv, .json.""",
+    PoseNet (P) and by the ground-truth median (GT); a constant plane (GT); for networks with a
+    PoseNet, the cosine between its translation and the true one. Writes results.md (the
+    thesis' numbers beside), .csv, .json.""",
 )
 @click.option(
     "--ckpt",

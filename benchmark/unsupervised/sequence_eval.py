@@ -28,6 +28,14 @@ to 100 m, per image, then the mean over images).
   does not say which pair), and "GT", the per-image median ratio.
 - The constant plane (Table 5.3): every pixel at the median of the image's ground truth ("GT").
 
+Beside the depth, every row of a network with a PoseNet (trained from video: ``depthnet-unsup*``,
+``sfmlearner*``) says whether PoseNet found the direction of the camera's motion:
+:data:`POSE_COSINE`, the mean over the sequences of the cosine between PoseNet's translation from
+t to the row's reference and the true one (:func:`pose_cosines`), and :data:`POSE_COSINE_SHARE`,
+the share of sequences whose cosine is above :data:`POSE_COSINE_GOOD`. The reference is the pair
+the row's depth came from (DepthNet: the pair each rule kept; SFMLearner, both scales: the
+window's first frame, whose displacement "P" reads). Rows without a PoseNet have None there.
+
 ``upside_down`` (Table 5.3's robustness test, sky down) scores the same windows with the rows
 of every frame and depth map flipped, the camera geometry flipped with them (:func:`upside_down`).
 """
@@ -48,8 +56,9 @@ from ..core import metrics, registry
 from ..core.checkpoint import load_checkpoint, load_weights, source_error
 from ..core.data import NORM_MEAN, NORM_STD
 from ..core.errors import FieldError
-from .rotation import Stabiliser
+from .rotation import Stabiliser, target_rotations
 from .scaling import pose_scale
+from .training import compensate
 
 #: frames of a test window: PoseNet's input length (§5.4.3), the recipe's sequence length
 SEQUENCE_LENGTH = registry.UNSUPERVISED_RECIPE.sequence_length
@@ -65,6 +74,10 @@ SCALE_P, SCALE_GT, SCALE_P_FIXED = "P", "GT", "P (fixed pair)"
 UPRIGHT, UPSIDE_DOWN = "upright", "upside-down"
 #: the flip of the camera's y axis (OpenCV axes: y down)
 FLIP_Y = np.diag([1.0, -1.0, 1.0])
+#: result columns of PoseNet's translation direction (module doc): the mean cosine, and the share
+#: of sequences whose cosine is above POSE_COSINE_GOOD
+POSE_COSINE, POSE_COSINE_GOOD = "pose_cosine", 0.9
+POSE_COSINE_SHARE = f"{POSE_COSINE}_gt_{POSE_COSINE_GOOD:g}"
 
 
 @dataclass(frozen=True)
@@ -83,6 +96,13 @@ class Window:
     stabilised: bool
     scene: int
     last: int
+
+    @property
+    def translation(self) -> np.ndarray:
+        """(N, 3) metres: ``τ_i`` with ``X_i = R_{t→i}·X_t + τ_i`` (PoseNet's and the warps'
+        convention, in frame i's axes), from camera i's centre ``p_i = −R_{t→i}ᵀ·τ_i``: on a
+        stabilised window ``−p_i``, finetune.pose_cosine's known translation."""
+        return -np.einsum("nij,nj->ni", self.rotation, self.position)
 
 
 def scene_windows(scene: Scene, length: int = SEQUENCE_LENGTH) -> list[Window]:
@@ -146,6 +166,12 @@ class EvalModel:
     camera: dict | None = None
 
     @property
+    def posenet(self) -> bool:
+        """The network has a PoseNet (it was trained from video: ``depthnet-unsup*``,
+        ``sfmlearner*``; ``net.pose`` gives the poses of a sequence)."""
+        return self.net is not None and self.kind.target is registry.Target.VIDEO
+
+    @property
     def stabilise(self) -> str:
         """Where the reference's rotation comes from: PoseNet's (6-DoF networks), none
         (single-frame networks, the constant plane), else the known orientation."""
@@ -201,35 +227,74 @@ def _full(depth: torch.Tensor, h: int, w: int) -> torch.Tensor:
 
 @torch.inference_mode()
 def predict(m: EvalModel, w: Window, device: torch.device) -> dict:
-    """The last frame's depth (H, W) metres for each of ``m.scales`` (``{scale: depth}``), and
+    """The last frame's depth (H, W) metres for each of ``m.scales`` (``{scale: depth}``),
     ``shifts``: ``{scale: frames between the reference used and t}`` (DepthNet's; empty
-    otherwise)."""
+    otherwise), and ``pose_cosine``: ``{scale: cosine}`` (:func:`pose_cosines` at the scale's
+    reference; empty without PoseNet)."""
     gt = torch.from_numpy(np.ascontiguousarray(w.depth)).to(device)
     if m.net is None:  # the constant plane, at the ground truth's median
         median = metrics.median_scale(torch.ones_like(gt)[None], gt[None])[0]
-        return {SCALE_GT: torch.full_like(gt, float(median)), "shifts": {}}
+        return {SCALE_GT: torch.full_like(gt, float(median)), "shifts": {}, "pose_cosine": {}}
     seq = _normalised(w.frames, device)  # (N, 3, H, W)
+    n, _, h, wd = seq.shape
+    poses = m.net.pose(seq.reshape(1, 3 * n, h, wd)).float() if m.posenet else None
     if m.kind.scored_as is registry.Scoring.SCALE_FREE:
-        return _scale_free(m, w, seq, gt)
-    return _depthnet(m, w, seq)
+        out = _scale_free(m, w, seq, gt, poses)
+    else:
+        out = _depthnet(m, w, seq, poses)
+    refs = out.pop("references")
+    out["pose_cosine"] = {}
+    if poses is not None:
+        cosines = pose_cosines(m, w, poses, list(refs.values())).tolist()
+        out["pose_cosine"] = dict(zip(refs, cosines, strict=True))
+    return out
 
 
-def _scale_free(m: EvalModel, w: Window, seq: torch.Tensor, gt: torch.Tensor) -> dict:
-    """An SfmLearnerNet's depth of the last frame with the "P" scale (PoseNet's displacement
-    between the window's first and last frames against the measured one) and the "GT" one."""
+def posenet_translations(m: EvalModel, w: Window, poses: torch.Tensor) -> torch.Tensor:
+    """PoseNet's translations from t (the window's last frame) to every frame, ``(N, 3)``:
+    ``τ_i`` with ``X_i = R_{t→i}·X_t + τ_i`` in PoseNet's unit, from its ``poses`` ``(1, N,
+    dof)`` as training makes them: training.compensate with the rotations of the network's
+    ``--pose`` (rotation.target_rotations: none, the window's known ``R_{t→i}`` or PoseNet's
+    6-DoF ones). t being the last frame, whose PoseNet row is zero, that is PoseNet's output."""
+    tgt = torch.tensor([poses.shape[1] - 1], device=poses.device)
+    known = torch.from_numpy(w.rotation).to(poses)[None]
+    rotations = target_rotations(m.pose or "translation", poses, known, tgt)
+    return compensate(poses[..., :3], tgt, rotations)[0]
+
+
+def pose_cosines(
+    m: EvalModel, w: Window, poses: torch.Tensor, references: list[int]
+) -> torch.Tensor:
+    """``(len(references),)``: the cosine between PoseNet's translation from t to each reference
+    (:func:`posenet_translations`) and the true one (:attr:`Window.translation`), both ``τ_r``
+    of ``X_r = R_{t→r}·X_t + τ_r`` in frame r's axes: 1 when PoseNet found the direction,
+    whatever its unit; its rotation (6-DoF) does not enter. With the known rotation, the cosine
+    of the camera displacements in t's axes (a rotation keeps cosines)."""
+    ours = posenet_translations(m, w, poses)[references]
+    true = torch.from_numpy(w.translation[references]).to(ours)
+    return torch.nn.functional.cosine_similarity(ours, true, dim=1)
+
+
+def _scale_free(
+    m: EvalModel, w: Window, seq: torch.Tensor, gt: torch.Tensor, poses: torch.Tensor
+) -> dict:
+    """An SfmLearnerNet's depth of the last frame with the "P" scale (PoseNet's ``poses``:
+    displacement between the window's first and last frames against the measured one) and the
+    "GT" one; ``references``: the first frame for both."""
     n, _, h, wd = seq.shape
     raw = _full(m.net(torch.cat([seq[-1], seq[-1]])[None])[0].float(), h, wd)[None]
-    poses = m.net.pose(seq.reshape(1, 3 * n, h, wd)).float()
     first = torch.from_numpy(w.position[0]).float().to(seq.device)[None]  # metres from t
     p = pose_scale(poses, torch.tensor([[0, n - 1]], device=seq.device), first)
     g = metrics.median_scale(raw, gt[None]).to(raw.dtype)
-    return {SCALE_P: raw[0] * p[0], SCALE_GT: raw[0] * g[0], "shifts": {}}
+    return {SCALE_P: raw[0] * p[0], SCALE_GT: raw[0] * g[0], "shifts": {},
+            "references": {SCALE_P: 0, SCALE_GT: 0}}  # fmt: skip
 
 
-def _depthnet(m: EvalModel, w: Window, seq: torch.Tensor) -> dict:
+def _depthnet(m: EvalModel, w: Window, seq: torch.Tensor, poses: torch.Tensor | None) -> dict:
     """DepthNet's depth of the last frame from the pair (r, t) whose mean output is closest to
     PAIR_TARGET_DEPTH (SCALE_P) and from the pair whose measured displacement is closest to d0
-    (SCALE_P_FIXED), each reference stabilised first (:attr:`EvalModel.stabilise`), × ‖t_r‖/d0."""
+    (SCALE_P_FIXED), each reference stabilised first (:attr:`EvalModel.stabilise`; PoseNet's
+    rotation from ``poses``), × ‖t_r‖/d0; ``references``: ``{scale: the pair's reference}``."""
     n, _, h, wd = seq.shape
     refs = torch.arange(n - 1, device=seq.device)
     pairs = torch.cat([seq[:-1], seq[-1:].expand(n - 1, -1, -1, -1)], 1)  # (N − 1, 6, H, W)
@@ -238,11 +303,10 @@ def _depthnet(m: EvalModel, w: Window, seq: torch.Tensor) -> dict:
         known = torch.from_numpy(w.rotation).float().to(seq.device).expand(n - 1, -1, -1, -1)
         tgt = torch.full((n - 1,), n - 1, device=seq.device)
         if m.stabilise == STABILISE_POSENET:
-            poses = m.net.pose(seq.reshape(1, 3 * n, h, wd)).float().expand(n - 1, -1, -1)
-            mode = "6dof"
+            mode, turns = "6dof", poses.expand(n - 1, -1, -1)
         else:
-            mode, poses = "orientation", torch.zeros(n - 1, n, 3, device=seq.device)
-        pairs = Stabiliser(mode, known, tgt, refs, K)(pairs, poses)
+            mode, turns = "orientation", torch.zeros(n - 1, n, 3, device=seq.device)
+        pairs = Stabiliser(mode, known, tgt, refs, K)(pairs, turns)
     raw = m.net(pairs)[0].float()  # (N − 1, 1, h, w), metres at d0
     if m.clamp is not None:
         raw = raw.clamp(*m.clamp)
@@ -253,15 +317,18 @@ def _depthnet(m: EvalModel, w: Window, seq: torch.Tensor) -> dict:
     }
     out: dict = {s: _full(raw[k : k + 1] * (moved[k] / m.d0), h, wd) for s, k in chosen.items()}
     out["shifts"] = {s: n - 1 - k for s, k in chosen.items()}
+    out["references"] = chosen
     return out
 
 
 @dataclass
 class Tally:
-    """Per-image metrics of one (model, scale, orientation), and the shifts DepthNet used."""
+    """Per-image metrics of one (model, scale, orientation), the shifts DepthNet used and the
+    cosines of PoseNet's translation (one a sequence; none without PoseNet)."""
 
     per_image: dict[str, list[torch.Tensor]] = field(default_factory=dict)
     shifts: Counter = field(default_factory=Counter)
+    cosines: list[float] = field(default_factory=list)
 
     def add(self, pred: torch.Tensor, gt: torch.Tensor) -> None:
         for k, v in metrics.image_metrics(pred[None], gt[None]).items():
@@ -272,7 +339,18 @@ class Tally:
         out = {k: agg[k] for k in metrics.METRICS}
         out["images"] = agg["images"]
         out["shifts_used"] = " ".join(f"{s}:{c}" for s, c in sorted(self.shifts.items()))
-        return out
+        return {**out, **self.pose_summary()}
+
+    def pose_summary(self) -> dict:
+        """:data:`POSE_COSINE` (the mean cosine) and :data:`POSE_COSINE_SHARE` (the share of
+        cosines above :data:`POSE_COSINE_GOOD`), both None without cosines."""
+        if not self.cosines:
+            return {POSE_COSINE: None, POSE_COSINE_SHARE: None}
+        c = np.asarray(self.cosines, np.float64)
+        return {
+            POSE_COSINE: float(c.mean()),
+            POSE_COSINE_SHARE: float((c > POSE_COSINE_GOOD).mean()),
+        }
 
 
 def test_scenes(data: Path, split: str, limit: int | None) -> list[Scene]:
@@ -312,7 +390,8 @@ def evaluate(
     progress: bool = True,
 ) -> list[dict]:
     """One row per (orientation, model, scale): the model's fields, the metrics, ``images``,
-    ``sequences`` and ``shifts_used`` (frames between the chosen reference and t: count)."""
+    ``sequences``, ``shifts_used`` (frames between the chosen reference and t: count),
+    :data:`POSE_COSINE` and :data:`POSE_COSINE_SHARE` (None without PoseNet)."""
     from tqdm import tqdm
 
     for m in models:
@@ -333,6 +412,8 @@ def evaluate(
                         tallies[o, i, s].add(out[s], gt)
                     for s, shift in out["shifts"].items():
                         tallies[o, i, s].shifts[shift] += 1
+                    for s, cosine in out["pose_cosine"].items():
+                        tallies[o, i, s].cosines.append(cosine)
     rows = []
     for (o, i, s), tally in tallies.items():
         m = models[i]

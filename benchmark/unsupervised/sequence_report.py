@@ -17,6 +17,9 @@ from ..core import metrics, registry, runfolder
 from ..video.multishift_eval import RESULTS_CSV, RESULTS_JSON, RESULTS_MD
 from .sequence_eval import (
     PAIR_TARGET_DEPTH,
+    POSE_COSINE,
+    POSE_COSINE_GOOD,
+    POSE_COSINE_SHARE,
     SEQUENCE_LENGTH,
     UPRIGHT,
     UPSIDE_DOWN,
@@ -92,6 +95,9 @@ HEADINGS = {
 }
 #: the columns of Tables 5.2-5.3 (results.csv also has the field's metrics)
 SHOWN = tuple(metrics.header(k) for k in metrics.THESIS_METRICS)
+#: results.md's column of PoseNet's translation direction (results.csv: POSE_COSINE and
+#: POSE_COSINE_SHARE)
+POSE_HEADER = f"PoseNet cosine (share > {POSE_COSINE_GOOD:g})"
 
 
 def method(row: dict) -> str:
@@ -134,6 +140,16 @@ def occlusion(row: dict) -> str:
     return "✓" if row["occlusion"] else NONE
 
 
+def pose_cell(row: dict) -> str:
+    """The PoseNet column of a result row: the mean cosine and the share of sequences above
+    POSE_COSINE_GOOD, e.g. "0.987 (92 %)"; empty without PoseNet (or in a row written before
+    the column existed)."""
+    cosine = row.get(POSE_COSINE)
+    if cosine is None or cosine == "":
+        return ""
+    return f"{float(cosine):.3f} ({100 * float(row[POSE_COSINE_SHARE]):.0f} %)"
+
+
 def markdown(rows: list[dict], info: dict) -> str:
     """One table per orientation, each of our rows followed by the matching thesis row."""
     scenes = f"{info['scenes']} scene{'s' if info['scenes'] != 1 else ''}"
@@ -146,25 +162,32 @@ def markdown(rows: list[dict], info: dict) -> str:
         f"last frame; DepthNet's pair: mean output closest to {info['pair_target_depth_m']:g} m, "
         "scaled by the measured displacement (P); P (fixed pair): the reference whose measured "
         "displacement is closest to the network's nominal one, the same scaling. "
-        + info["averaging_rule"],
+        + info["averaging_rule"]
+        + f" {POSE_HEADER}: networks with a PoseNet, the mean over sequences of the cosine "
+        "between PoseNet's translation from the last frame to the row's reference (SFMLearner: "
+        "the first frame) and the true one, and the share of sequences above "
+        f"{POSE_COSINE_GOOD:g}.",
     ]
     head = "| method | model | training set | scale factor | supervision | occlusion | "
     for o in info["orientations"]:
         lines += ["", f"## {HEADINGS[o]}", ""]
-        lines.append(head + " | ".join(SHOWN) + " | pair chosen (frames apart: count) |")
-        lines.append("|" + "---|" * (6 + len(SHOWN) + 1))
+        lines.append(
+            head + " | ".join(SHOWN) + f" | {POSE_HEADER} | pair chosen (frames apart: count) |"
+        )
+        lines.append("|" + "---|" * (6 + len(SHOWN) + 2))
         for r in (r for r in rows if r["orientation"] == o):
             scores = _cells(r[k] for k in metrics.THESIS_METRICS)
             lines.append(
                 f"| {method(r)} | {r['model']} | {r['training_set']} | {r['scale']} | "
-                f"{supervision(r)} | {occlusion(r)} | {scores} | {r['shifts_used']} |"
+                f"{supervision(r)} | {occlusion(r)} | {scores} | {pose_cell(r)} | "
+                f"{r['shifts_used']} |"
             )
             t = thesis_row(r)
             if t is not None:
                 occ = "" if t.occlusion is None else "✓" if t.occlusion else NONE
                 lines.append(
                     f"| *thesis Table {t.table}* | | {t.training_set} | {t.scale} | "
-                    f"{t.supervision} | {occ} | {_cells(t.values)} | |"
+                    f"{t.supervision} | {occ} | {_cells(t.values)} | | |"
                 )
     return "\n".join(lines) + "\n"
 
