@@ -27,6 +27,7 @@ RENDER_FIXTURES = frozenset(
         "rotating_dataset",
         "one_scene_dataset",
         "close_range_scene",
+        "toy_data",
     }
 )
 
@@ -253,6 +254,24 @@ def rotating_dataset(tmp_path_factory) -> Path:
         *("--scenes", 3, "--frames", 6, "--seed", seed, "--quality", "fast", "--out", out),
         *("--split", ",".join(map(str, TINY_SHARES)), "--quiet"),
     )
+    return out
+
+
+#: Pixels of the toy presets' frames as the tests render them (the presets' 200 px rendered small).
+TOY_RES = 64
+
+
+@pytest.fixture(scope="session")
+def toy_data(tmp_path_factory) -> dict[str, Path]:
+    """Both toy presets rendered at TOY_RES px through the CLI, ``{scene name: dataset}`` (about
+    3 s each): the toy study's tests and its timing scripts (tests/test_study_scripts.py)."""
+    from benchmark.unsupervised import toy
+
+    root = tmp_path_factory.mktemp("toy")
+    out = {}
+    for name, preset in toy.PRESETS.items():
+        out[name] = root / preset
+        run_cli("--preset", preset, "--res", TOY_RES, "--out", out[name], "--workers", 1, "--quiet")
     return out
 
 

@@ -18,15 +18,12 @@ import click
 import numpy as np
 import pytest
 import torch
-from conftest import run_cli
+from conftest import TOY_RES as RES
 
 from benchmark.cli.options import UserError
 from benchmark.cli.unsupervised import DEPTHS_NPZ, RESULTS_JSON, TABLE_MD, toy_cmd
 from benchmark.unsupervised import toy, toy_runs
 from benchmark.unsupervised.reprojection import SMOOTH_LOSSES, inverse_warp, photometric_loss
-
-RES = 64  # the presets' 200 px rendered small
-
 
 # ---------------------------------------------------------------- metrics (fast)
 
@@ -326,17 +323,6 @@ def test_out_that_is_a_file_is_refused_and_kept(tmp_path):
 
 
 # ---------------------------------------------------------------- on rendered toy scenes
-
-
-@pytest.fixture(scope="module")
-def toy_data(tmp_path_factory) -> dict[str, Path]:
-    """Both presets rendered at RES px through the CLI."""
-    root = tmp_path_factory.mktemp("toy")
-    out = {}
-    for name, preset in toy.PRESETS.items():
-        out[name] = root / preset
-        run_cli("--preset", preset, "--res", RES, "--out", out[name], "--workers", 1, "--quiet")
-    return out
 
 
 @pytest.fixture(scope="module")
