@@ -17,7 +17,9 @@ or keys), never a measured number, so that a change of the library that breaks o
 - flight/``failure_frames.py``: a 5-step ``fly`` run (analytic renderer, constant depth)
   replayed through Blender with a depthnet-tiny checkpoint;
 - toy/``time_threads.py`` and ``time_old_new.py`` (the "old tree" a copy of this one's
-  ``benchmark``), generator-speed/``levers.py``: one step or scene per timing, 64 or 16 px.
+  ``benchmark``), generator-speed/``levers.py``: one step or scene per timing, 64 or 16 px;
+- unsup-128/``loss_at_candidates.py``: a 1-step depthnet-unsup-tiny run on tiny_dataset
+  (``--known-motion``) and on rotating_dataset (``--pose orientation``), 8 windows.
 
 Not covered: the author's own code (github.com/ClementPinard/unsupervised-depthnet) is not on
 this machine (offline), so ``harness.py verify`` (it imports the author's ``models``) is not run,
@@ -448,3 +450,47 @@ def test_levers():
             rf"{same}  PSNR vs base +({NUMBER}|inf) dB  PSNR vs 256 samples{n} dB",
             line,
         ), line
+
+
+# ---------------------------------------------------------------- unsup-128/
+
+
+def _photometric_terms(out: str) -> dict[tuple[str, str], float]:
+    """loss_at_candidates.py's rows: (depth, translations) -> photometric term."""
+    rows = {}
+    for line in lines_of(out)[3:]:
+        depth, motion, photo, smooth, loss = (c.strip() for c in line.strip("|").split("|"))
+        assert all(re.fullmatch(NUMBER, v) for v in (photo, smooth, loss)), line
+        assert float(loss) == pytest.approx(float(photo) + float(smooth), abs=2e-4), line
+        rows[(depth, motion)] = float(photo)
+    return rows
+
+
+@pytest.mark.render
+@pytest.mark.parametrize("rotating", [False, True])
+def test_loss_at_candidates(tiny_dataset, rotating_dataset, tmp_path, rotating):
+    """A 1-step depthnet-unsup-tiny run (--known-motion on stabilised data, --pose orientation
+    on rotating data), then the table of eq. 5.5 at the candidates: every (depth, translations)
+    row, and the true depth's photometric term lower with the true motion than with PoseNet's
+    and than the constants' with the true motion (a wrong pose convention in the script would
+    lose that; the smooth term can tip the total on these 2-window sets)."""
+    data = rotating_dataset if rotating else tiny_dataset
+    mode = ("--pose", "orientation") if rotating else ("--known-motion",)
+    run_bench(
+        *("run", "depthnet-unsup-tiny", *mode, "--data", data, "--batch-size", 2),
+        *("--max-steps", 1, "--threads", 1, "--quiet", "--out", tmp_path / "run"),
+    )
+    ckpt = tmp_path / "run" / "checkpoints" / "last.pt"
+    out = run_script("unsup-128/loss_at_candidates.py", data, ckpt, 4, 8)
+    head = lines_of(out)[:3]
+    pose = "orientation" if rotating else "translation"
+    assert re.fullmatch(rf"{re.escape(str(data))}: \d+ windows, .*last\.pt \({pose}\)", head[0])
+    assert head[1] == "| depth | translations | photometric | λ·smooth | loss |"
+    rows = _photometric_terms(out)
+    depths = ["the checkpoint's depth", "truth", "truth × 1.5", "truth / 1.5"]
+    depths += ["truth, beyond 20 m set to 100 m", "median constant"]
+    depths += ["flat 10 m (DepthNet at step 0)", "flat 100 m"]
+    assert list(rows) == [(d, m) for m in ("true", "PoseNet's") for d in depths]
+    truth = rows[("truth", "true")]
+    assert truth < rows[("truth", "PoseNet's")]
+    assert truth < rows[("median constant", "true")] and truth < rows[("flat 100 m", "true")]

@@ -255,3 +255,26 @@ def test_run_eval_resume_and_bad_options(tiny_dataset, tmp_path):
         no = ["run", "depthnet-unsup-tiny", "--data", tiny_dataset, "--out", tmp_path / "no"]
         _one_line(bench(*no, *flags, "--quiet", check=False), word)
         assert not (tmp_path / "no").exists()
+
+
+def test_pretrained_depthnet_initialises_the_depth_half():
+    """--pretrained with a supervised DepthNet's checkpoint (thesis §5.4.4's D + O -> O) loads
+    it into depthnet-unsup's DepthNet and leaves its PoseNet as initialised; a depthnet-unsup
+    checkpoint initialises the whole network."""
+    from benchmark.core.checkpoint import load_weights
+    from benchmark.supervised.train import pretrained_part
+
+    torch.manual_seed(0)
+    supervised = registry.build_model("depthnet-tiny")
+    unsup = registry.build_model("depthnet-unsup-tiny")
+    pose = {k: v.clone() for k, v in unsup.pose.state_dict().items()}
+    ck = {"model": supervised.state_dict(), "model_name": "depthnet-tiny"}
+    part = pretrained_part(unsup, ck)
+    assert part is unsup.depth
+    load_weights(part, ck, "pretrained", "sup.pt", "depthnet-unsup-tiny")
+    for k, v in supervised.state_dict().items():
+        torch.testing.assert_close(unsup.depth.state_dict()[k], v, rtol=0, atol=0)
+    for k, v in unsup.pose.state_dict().items():
+        torch.testing.assert_close(v, pose[k], rtol=0, atol=0)
+    whole = {"model": unsup.state_dict(), "model_name": "depthnet-unsup-tiny"}
+    assert pretrained_part(unsup, whole) is unsup

@@ -45,6 +45,7 @@ from ..core.data import (
 )
 from ..core.device import resolve_device
 from ..core.errors import FieldError, Ref
+from ..core.posenet import DepthPoseNet
 from ..core.stopping import stop_requests
 from . import evaluate
 
@@ -227,6 +228,15 @@ GT_SCALED = ("gt_mae", "gt_mre", "gt_mle")
 STAGE_KEYS = ("stage_loss_sum", "stage_steps", "stage_samples", "stage_wait", "stage_seconds")
 
 
+def pretrained_part(model: torch.nn.Module, ck: dict) -> torch.nn.Module:
+    """What a ``--pretrained`` checkpoint ``ck`` initialises: ``model`` whole, or the DepthNet of
+    a DepthPoseNet when ``ck`` holds a depth network alone (thesis §5.4.4's D + O -> O: a
+    supervised DepthNet trained on from video, with a fresh PoseNet)."""
+    if isinstance(model, DepthPoseNet) and not any(k.startswith("pose.") for k in ck["model"]):
+        return model.depth
+    return model
+
+
 class NonFiniteLoss(ValueError):
     """Training stopped on a NaN or infinite loss or weights (one line: step, epoch, what is
     kept)."""
@@ -280,7 +290,9 @@ class Trainer:
         self.nominal_displacement = None
         if cfg.pretrained and resume is None:  # resuming: the checkpoint's weights
             ck = load_checkpoint(cfg.pretrained, "pretrained")
-            load_weights(self.model, ck, "pretrained", cfg.pretrained, cfg.model)
+            load_weights(
+                pretrained_part(self.model, ck), ck, "pretrained", cfg.pretrained, cfg.model
+            )
             self.log(f"initialised from {cfg.pretrained}")
         cuda = self.device.type == "cuda"
         if cfg.channels_last:

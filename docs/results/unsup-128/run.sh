@@ -1,0 +1,55 @@
+#!/usr/bin/env bash
+# depthnet-unsup at 128 px from scratch: a time-boxed learning curve, scored under Table 5.2's
+# protocol. Run from the repository root:
+#   docs/results/unsup-128/run.sh MODE [EPOCHS] [RUNS]
+# MODE orientation:  rotating StillBox (240 scenes of 20 frames), the dataset's rotations and
+#                    PoseNet's translations in the warps (Table 5.2's "O" row)
+# MODE known-motion: stabilised StillBox (600 scenes of 10 frames), the dataset's translations in
+#                    the warps instead of PoseNet's (a control: can DepthNet learn here at all?)
+# EPOCHS: epochs of 100 steps of 16 sequences (10); RUNS: where run folders go (runs/unsup-128).
+# Writes RUNS/MODE/O (the run), RUNS/MODE/kept/epoch_K.pt (the checkpoint after each epoch's
+# validation) and RUNS/MODE/eval-epoch_K (eval-sequences, with the constant plane, and for
+# known-motion also `eval` on the test pairs) for each K in $EVAL_EPOCHS (default: every epoch).
+# STILLBOX_BENCH / STILLBOX_GEN: the commands to use (default: stillbox-bench / stillbox-gen).
+set -euo pipefail
+MODE=${1:?usage: run.sh orientation|known-motion [EPOCHS] [RUNS]}
+EPOCHS=${2:-10}
+RUNS=${3:-runs/unsup-128}/$MODE
+B=${STILLBOX_BENCH:-stillbox-bench}
+G=${STILLBOX_GEN:-stillbox-gen}
+case $MODE in
+orientation)
+    DATA=data/stillbox-rot-128
+    [ -f "$DATA/dataset.json" ] || $G --preset stillbox-rotating --res 128 --scenes 240 --out "$DATA"
+    OPTIONS="--pose orientation" ;;
+known-motion)
+    DATA=data/stillbox-128
+    [ -f "$DATA/dataset.json" ] || $G --res 128 --scenes 600 --out "$DATA"
+    OPTIONS="--known-motion" ;;
+*) echo "run.sh: MODE must be orientation or known-motion, got '$MODE'" >&2; exit 2 ;;
+esac
+mkdir -p "$RUNS/kept"
+# shellcheck disable=SC2086
+$B run depthnet-unsup $OPTIONS --data "$DATA" --batch-size 16 --epoch-size 100 \
+    --epochs "$EPOCHS" --ckpt-every 100000 --threads 1 --quiet --out "$RUNS/O" &
+run=$!
+rows() { echo $(($(cat "$RUNS/O/metrics.csv" 2>/dev/null | wc -l) - 1)); }
+seen=0
+while kill -0 $run 2>/dev/null; do  # keep the checkpoint written at each validation
+    sleep 20
+    if [ "$(rows)" -gt "$seen" ]; then
+        sleep 15  # last.pt is written after the metrics row
+        seen=$(rows)
+        cp "$RUNS/O/checkpoints/last.pt" "$RUNS/kept/epoch_$seen.pt"
+    fi
+done
+wait $run
+[ "$(rows)" -gt "$seen" ] && cp "$RUNS/O/checkpoints/last.pt" "$RUNS/kept/epoch_$(rows).pt"
+for k in ${EVAL_EPOCHS:-$(seq 1 "$(rows)")}; do
+    out=$RUNS/eval-epoch_$k
+    [ -f "$out/results.csv" ] || $B eval-sequences --ckpt "$RUNS/kept/epoch_$k.pt" --data "$DATA" \
+        --quiet --out "$out"
+    if [ "$MODE" = known-motion ] && [ ! -f "$out-pairs/summary.json" ]; then
+        $B eval --ckpt "$RUNS/kept/epoch_$k.pt" --data "$DATA" --quiet --out "$out-pairs"
+    fi
+done
