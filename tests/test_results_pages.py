@@ -172,3 +172,70 @@ def test_unsupervised_reference_table_matches_its_results_csv():
             _agree(_numbers(cell), _mae_mre_mle(scored[("upright", ckpt, scale, "False")]))
     last = scored[("upright", ours + "last.pt", "P", "False")]
     assert _mae_mre_mle(last) == _mae_mre_mle(scored[("upright", ours + "best.pt", "P", "False")])
+
+
+def _table(text: str) -> dict[str, list[str]]:
+    """The markdown table rows of ``text`` by first cell (header and rule rows included)."""
+    rows = {}
+    for line in text.splitlines():
+        if line.startswith("|"):
+            cells = [c.strip() for c in line.strip().strip("|").split("|")]
+            rows[cells[0]] = cells
+    return rows
+
+
+def _cosine(row: dict) -> list[float]:
+    return [float(row["pose_cosine"])] if row.get("pose_cosine") else []
+
+
+def test_unsup_128_tables_match_their_outputs():
+    folder = RESULTS / "unsup-128"
+    text = (folder / "README.md").read_text()
+    runs, control = text.split("## Runs and results")[1].split("## The control")
+    control, losses = control.split("## Where the training loss")
+    scored = {
+        name: _sequence_rows(folder / name / "results.csv")
+        for name in ("orientation", "supervised", "finetune", "known-motion")
+    }
+    main = {
+        "constant plane (GT median)": ("orientation", ""),
+        "`depthnet-unsup --pose orientation`, epoch 1": (
+            "orientation",
+            "unsup-128/kept/epoch_1.pt",
+        ),
+        "same, epoch 4": ("orientation", "unsup-128/kept/epoch_4.pt"),
+        "same, epoch 8 (stopped)": ("orientation", "unsup-128/kept/epoch_8.pt"),
+        "supervised `depthnet` (D + O), `best.pt`": ("supervised", "sup-128/O/checkpoints/best.pt"),
+        "D + O → O: `depthnet-unsup --pose orientation --pretrained` the supervised `best.pt`, "
+        "epoch 1": ("finetune", "ft-128/kept/epoch_1.pt"),
+        "same, epoch 3": ("finetune", "ft-128/kept/epoch_3.pt"),
+    }
+    table = _table(runs)
+    for label, (name, ckpt) in main.items():
+        cells = table[label]
+        ckpt = f"runs/{ckpt}" if ckpt else ""
+        rule = scored[name][("upright", ckpt, "P" if ckpt else "GT", "False")]
+        _agree(_numbers(cells[3]), _mae_mre_mle(rule))
+        if ckpt:
+            fixed = scored[name][("upright", ckpt, "P (fixed pair)", "False")]
+            _agree(_numbers(cells[4]), _mae_mre_mle(fixed))
+            _agree(_numbers(cells[5]), _cosine(rule))
+    table, known = _table(control), scored["known-motion"]
+    constant = known[("upright", "", "GT", "False")]
+    _agree(_numbers(table["constant plane (GT median)"][1]), _mae_mre_mle(constant))
+    for epoch in (4, 8, 12):
+        (label,) = [k for k in table if k.startswith(f"epoch {epoch} (")]
+        ckpt = f"runs/km-128/kept/epoch_{epoch}.pt"
+        _agree(_numbers(table[label][1]), _mae_mre_mle(known[("upright", ckpt, "P", "False")]))
+        fixed = known[("upright", ckpt, "P (fixed pair)", "False")]
+        _agree(_numbers(table[label][2]), _mae_mre_mle(fixed))
+    # the loss table: each depth's loss with the true and with PoseNet's translations, as printed
+    printed: dict[str, list[float]] = {}
+    for line in (folder / "orientation" / "loss_at_candidates.md").read_text().splitlines()[3:]:
+        depth, _, _, _, loss = (c.strip() for c in line.strip("|").split("|"))
+        printed.setdefault(depth, []).append(float(loss))
+    quoted = {k: v for k, v in _table(losses).items() if _numbers(v[1])}
+    assert len(quoted) == len(printed) == 8
+    for label, cells in quoted.items():
+        depth = "the checkpoint's depth" if label == "the checkpoint's own" else label
+        _agree(_numbers(" ".join(cells[1:])), printed[depth])

@@ -50,6 +50,6 @@ for k in ${EVAL_EPOCHS:-$(seq 1 "$(rows)")}; do
     [ -f "$out/results.csv" ] || $B eval-sequences --ckpt "$RUNS/kept/epoch_$k.pt" --data "$DATA" \
         --quiet --out "$out"
     if [ "$MODE" = known-motion ] && [ ! -f "$out-pairs/summary.json" ]; then
-        $B eval --ckpt "$RUNS/kept/epoch_$k.pt" --data "$DATA" --quiet --out "$out-pairs"
+        $B eval --ckpt "$RUNS/kept/epoch_$k.pt" --data "$DATA" --out "$out-pairs"
     fi
 done
