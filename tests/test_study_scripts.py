@@ -19,7 +19,8 @@ or keys), never a measured number, so that a change of the library that breaks o
 - toy/``time_threads.py`` and ``time_old_new.py`` (the "old tree" a copy of this one's
   ``benchmark``), generator-speed/``levers.py``: one step or scene per timing, 64 or 16 px;
 - unsup-128/``loss_at_candidates.py``: a 1-step depthnet-unsup-tiny run on tiny_dataset
-  (``--known-motion``) and on rotating_dataset (``--pose orientation``), 8 windows.
+  (``--known-motion``) and on rotating_dataset (``--pose orientation``), 8 windows;
+  ``pretrained_start.py``: the untrained depthnet-tiny checkpoint on tiny_dataset, 4 windows.
 
 Not covered: the author's own code (github.com/ClementPinard/unsupervised-depthnet) is not on
 this machine (offline), so ``harness.py verify`` (it imports the author's ``models``) is not run,
@@ -494,3 +495,21 @@ def test_loss_at_candidates(tiny_dataset, rotating_dataset, tmp_path, rotating):
     truth = rows[("truth", "true")]
     assert truth < rows[("truth", "PoseNet's")]
     assert truth < rows[("median constant", "true")] and truth < rows[("flat 100 m", "true")]
+
+
+@pytest.mark.render
+def test_pretrained_start(tiny_dataset, tiny_ckpt):
+    """A supervised checkpoint's maps and eq. 5.5's terms at step 0, in both BatchNorm modes."""
+    out = lines_of(run_script("unsup-128/pretrained_start.py", tiny_dataset, tiny_ckpt, 2, 4))
+    assert re.fullmatch(
+        rf"{re.escape(str(tiny_dataset))}: \d+ windows, .* \(depthnet-tiny\)", out[0]
+    )
+    assert len(out) == 5
+    for mode, maps, terms in ((("train", *out[1:3])), ("eval", *out[3:5])):
+        scale = rf"1/\d+: median {NUMBER} m, {NUMBER}% below 0.1 m"
+        assert re.fullmatch(rf"{mode} mode: {scale}(; {scale})*", maps), maps
+        assert re.fullmatch(
+            rf"{mode} mode: photometric {NUMBER}, λ·smooth {NUMBER} \(every scale\); "
+            rf"photometric {NUMBER} \(finest map alone\)",
+            terms,
+        ), terms
