@@ -348,7 +348,19 @@ class TrainConfig:
             parse=lambda given: given or None,
         ),
     )
-    smooth_weight: float | None = setting(None, recipe=True)
+    smooth_weight: float | None = setting(
+        None,
+        recipe=True,
+        flag=Flag(
+            "--smooth-weight",
+            {
+                "run": "depthnet-unsup*, sfmlearner*: λ of the smooth loss (0: the photometric "
+                "loss alone).  [default: Table 4.1's gradient-diffusion optimum × 1e-4]"
+            },
+            kind="float",
+            rule=(lambda v: v >= 0 and math.isfinite(v), "must be a number ≥ 0"),
+        ),
+    )
     smooth_kappa: float | None = setting(None, recipe=True)
     pose: str | None = setting(
         None,
