@@ -24,6 +24,7 @@ from . import camera
 from .arguments import parse_point, parse_resolution, parse_shares
 from .conventions import LIMITS
 from .errors import ConfigError
+from .layout import FLOW_FORMATS
 
 PRIMITIVE_KINDS = ("cube", "sphere", "cone", "torus", "cylinder", "slab")  # objects.kinds default
 # Every shape kind (shapes.py): the default draw above, plus "plane" (a flat rectangle, e.g. the
@@ -300,6 +301,20 @@ class RenderConfig:
             is_flag=True,
         ),
     )
+    # the flow files' format (stillbox_gen.layout.FLOW_FORMATS): Middlebury .flo (float32) or
+    # KITTI's 16-bit PNG (u, v, valid; 1/64 px, |flow| up to 512 px); with render.flow only
+    flow_format: str = field(
+        default="flo",
+        metadata=flag(
+            "--flow-format",
+            "File format of the --flow files: Middlebury .flo (float32) or KITTI's 16-bit PNG "
+            "(1/64 px steps, within 512 px). Implies --flow.",
+            216,
+            type=FLOW_FORMATS,
+            also=(("flow", True),),
+            note="plain",
+        ),
+    )
 
 
 # --quality: render-section values (measured with `stillbox-gen bench`, see docs/SPEED.md);
@@ -392,6 +407,7 @@ OMITTED_AT_DEFAULT = {
     "objects.fixed": None,
     "render.light_tree": True,
     "render.flow": False,
+    "render.flow_format": "flo",
 }
 
 SECTIONS = {
@@ -811,6 +827,15 @@ def validate(
     if r.image_format not in IMAGE_FORMATS:
         raise ConfigError(
             f"{where('render.image_format')} must be one of {IMAGE_FORMATS}, got {r.image_format!r}"
+        )
+    if r.flow_format not in FLOW_FORMATS:
+        raise ConfigError(
+            f"{where('render.flow_format')} must be one of {FLOW_FORMATS}, got {r.flow_format!r}"
+        )
+    if r.flow_format != "flo" and not r.flow:
+        raise ConfigError(
+            f"{where('render.flow_format')} {r.flow_format!r} needs render.flow = true (the "
+            "format of flow files that would not be written)"
         )
     if not 0 < r.near_clip < r.max_distance:
         raise ConfigError(

@@ -78,18 +78,34 @@ class Scene:
         """The stored optical flow from frame ``a`` to frame ``b`` (datasets made with --flow):
         ``(flow, valid, occluded)``: flow (H, W, 2) float32 pixels on frame a's grid, position
         in frame b minus position in frame a (x right, y down), NaN where not valid; the two
-        (H, W) bool masks of stillbox_gen.flow.flow_masks. DatasetError when the dataset holds
-        no flow for that pair or a file is missing or unreadable."""
+        (H, W) bool masks of stillbox_gen.flow.flow_masks. The flow file is Middlebury .flo or
+        KITTI's 16-bit PNG (--flow-format kitti-png: 1/64 px steps, its valid channel equal to
+        the valid mask). DatasetError when the dataset holds no flow for that pair or a file
+        is missing, unreadable or disagrees with the others."""
         files = self.flow_files.get((a, b))
         if files is None:
             raise DatasetError(f"scene {self.index}: no stored flow from frame {a} to frame {b}")
-        flow = formats.read_flo(files["flow"])
-        valid = formats.read_mask_png(files["valid"])
-        occluded = formats.read_mask_png(files["occluded"])
-        if valid.shape != flow.shape[:2] or occluded.shape != valid.shape:
-            raise DatasetError(f"'{files['flow']}': its masks are not of the flow's size")
-        flow[~valid] = np.nan
-        return flow, valid, occluded
+        return decode_flow_files(self._flow_bytes(files), {k: str(p) for k, p in files.items()})
+
+    def _flow_bytes(self, files: dict[str, Path]) -> dict[str, bytes]:
+        """{key of layout.FLOW_KEYS: the bytes of that file} of one stored pair."""
+        return {k: formats.read_file(files[k], k if k == "flow" else "mask") for k in files}
+
+
+def decode_flow_files(
+    data: dict[str, bytes], names: dict[str, str]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:meth:`Scene.load_flow` of the bytes of a pair's files (``data`` and their ``names``, by
+    key of layout.FLOW_KEYS), wherever they were read from (a folder or a packed shard)."""
+    flow, channel = formats.decode_flow(data["flow"], names["flow"])
+    valid = formats.decode_mask_png(data["valid"], names["valid"])
+    occluded = formats.decode_mask_png(data["occluded"], names["occluded"])
+    if valid.shape != flow.shape[:2] or occluded.shape != valid.shape:
+        raise DatasetError(f"'{names['flow']}': its masks are not of the flow's size")
+    if channel is not None and not np.array_equal(channel, valid):
+        raise DatasetError(f"'{names['flow']}': its valid channel differs from '{names['valid']}'")
+    flow[~valid] = np.nan
+    return flow, valid, occluded
 
 
 class Dataset:

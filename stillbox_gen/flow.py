@@ -130,8 +130,11 @@ def pair_flow(
 def write_scene_flow(folder: Path, record: dict) -> None:
     """Write the flow and mask files of every entry of ``record["flow"]`` into ``folder``, from
     the scene's depth files there (``record["depth_exr"]``), its ``K`` and ``cam2world``: .flo
-    (float32; Middlebury's unknown value, 1e10, where the flow is undefined) and 8-bit PNG masks
-    (255 where true), each written atomically."""
+    (float32; Middlebury's unknown value, 1e10, where the flow is undefined) or, for a ``.png``
+    flow file (--flow-format kitti-png), KITTI's 16-bit PNG, and 8-bit PNG masks (255 where
+    true), each written atomically. In KITTI's format a valid flow beyond its range (about
+    ±512 px) cannot be stored: such pixels are not valid (nor occluded) there, in both the
+    PNG's valid channel and the valid mask, which stay equal."""
     folder = Path(folder)
     depth: dict[int, np.ndarray] = {}
 
@@ -144,6 +147,11 @@ def write_scene_flow(folder: Path, record: dict) -> None:
     for entry in record["flow"]:
         a, b = entry["from"], entry["to"]
         pair = pair_flow(load(a), load(b), K, poses[a], poses[b])
-        formats.write_flo(folder / entry["flow"], pair.flow)
+        if entry["flow"].endswith(".png"):
+            pair.valid &= formats.kitti_representable(pair.flow)
+            pair.occluded &= pair.valid
+            formats.write_kitti_flow(folder / entry["flow"], pair.flow, pair.valid)
+        else:
+            formats.write_flo(folder / entry["flow"], pair.flow)
         formats.write_mask_png(folder / entry["valid"], pair.valid)
         formats.write_mask_png(folder / entry["occluded"], pair.occluded)

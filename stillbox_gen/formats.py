@@ -283,16 +283,93 @@ def read_flo(path: Path) -> np.ndarray:
     """An (H, W, 2) float32 flow from a Middlebury .flo file, values as stored (Middlebury's
     unknown flow is above 1e9). DatasetError naming the file when it is missing, its magic
     number is not 202021.25 or its size disagrees with its header."""
-    try:
-        data = Path(path).read_bytes()
-    except OSError as e:
-        raise DatasetError(f"cannot read flow '{path}' ({e.strerror})") from None
+    return decode_flo(read_file(path, "flow"), str(path))
+
+
+def decode_flo(data: bytes, where: str) -> np.ndarray:
+    """:func:`read_flo` of a .flo file's bytes; ``where`` names it in a DatasetError."""
     if len(data) < 12 or np.frombuffer(data[:4], "<f4")[0] != np.float32(FLO_MAGIC):
-        raise DatasetError(f"'{path}': not a .flo file (magic number is not {FLO_MAGIC})")
+        raise DatasetError(f"'{where}': not a .flo file (magic number is not {FLO_MAGIC})")
     w, h = (int(v) for v in np.frombuffer(data[4:12], "<i4"))
     if w < 1 or h < 1 or len(data) != 12 + 8 * w * h:
-        raise DatasetError(f"'{path}': {len(data)} bytes, not a {w}x{h} .flo file")
+        raise DatasetError(f"'{where}': {len(data)} bytes, not a {w}x{h} .flo file")
     return np.frombuffer(data[12:], "<f4").reshape(h, w, 2).astype(np.float32)
+
+
+def read_file(path: Path, what: str) -> bytes:
+    """The bytes of a dataset's file; DatasetError ("cannot read <what> '<path>' (...)") when
+    it cannot be read."""
+    try:
+        return Path(path).read_bytes()
+    except OSError as e:
+        raise DatasetError(f"cannot read {what} '{path}' ({e.strerror})") from None
+
+
+# KITTI's 16-bit flow PNG (--flow-format kitti-png), as the KITTI 2015 devkit writes it: three
+# uint16 channels in the file's order R, G, B = u, v, valid; u and v (pixels, x right, y down)
+# stored as round(flow * 64) + 2**15, valid 1 or 0 (u = v = 0 where 0). OpenCV's arrays are in
+# B, G, R order: valid is channel 0 there, u channel 2.
+KITTI_SCALE = 64  # steps per pixel: the flow is stored to 1/64 px (rounded: within 1/128 px)
+KITTI_OFFSET = 2**15
+
+
+def kitti_representable(flow: np.ndarray) -> np.ndarray:
+    """(H, W) bool: where an (H, W, 2) flow (pixels) fits KITTI's 16 bits once rounded, both
+    components in [−512, 511 + 63/64] px (NaN does not)."""
+    with np.errstate(invalid="ignore"):
+        steps = np.rint(np.asarray(flow, np.float64) * KITTI_SCALE) + KITTI_OFFSET
+        return np.all((steps >= 0) & (steps <= 65535), axis=-1)
+
+
+def kitti_flow_bytes(flow: np.ndarray, valid: np.ndarray) -> bytes:
+    """The KITTI 16-bit PNG bytes of an (H, W, 2) flow in pixels and its (H, W) valid mask,
+    which must hold only representable flow (:func:`kitti_representable`; ValueError
+    otherwise): u and v rounded to 1/64 px, 0 where not valid."""
+    import cv2
+
+    flow, valid = np.asarray(flow, np.float64), np.asarray(valid, bool)
+    if flow.ndim != 3 or flow.shape[2] != 2 or valid.shape != flow.shape[:2]:
+        raise ValueError(
+            f"flow must be (H, W, 2) and valid (H, W), got {flow.shape}, {valid.shape}"
+        )
+    if np.any(valid & ~kitti_representable(flow)):
+        raise ValueError("flow beyond KITTI's range (about ±512 px) at a valid pixel")
+    steps = np.where(valid[..., None], np.rint(np.nan_to_num(flow) * KITTI_SCALE), -KITTI_OFFSET)
+    uv = (steps + KITTI_OFFSET).astype(np.uint16)
+    bgr = np.stack([valid.astype(np.uint16), uv[..., 1], uv[..., 0]], axis=-1)
+    ok, buf = cv2.imencode(".png", bgr)
+    if not ok:
+        raise ValueError("cannot encode a KITTI flow PNG")
+    return buf.tobytes()
+
+
+def write_kitti_flow(path: Path, flow: np.ndarray, valid: np.ndarray) -> None:
+    """Write :func:`kitti_flow_bytes` atomically (:func:`atomic_write`)."""
+    atomic_write_bytes(path, kitti_flow_bytes(flow, valid))
+
+
+def decode_kitti_flow(data: bytes, where: str) -> tuple[np.ndarray, np.ndarray]:
+    """``(flow, valid)`` of a KITTI flow PNG's bytes: (H, W, 2) float32 pixels, (value − 2**15)
+    / 64 (where not valid, the stored 0 reads as −512), and the (H, W) bool valid channel.
+    DatasetError naming ``where`` when it is no 3-channel 16-bit PNG or its valid channel holds
+    other values than 0 and 1."""
+    import cv2
+
+    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    if img is None or img.ndim != 3 or img.shape[2] != 3 or img.dtype != np.uint16:
+        raise DatasetError(f"cannot read flow '{where}' (not a 3-channel 16-bit KITTI flow PNG)")
+    if not np.isin(img[..., 0], (0, 1)).all():
+        raise DatasetError(f"'{where}': the valid channel of a KITTI flow PNG holds only 0 and 1")
+    uv = img[..., 2:0:-1].astype(np.float32)  # B, G, R -> u (R), v (G)
+    return (uv - KITTI_OFFSET) / KITTI_SCALE, img[..., 0] == 1
+
+
+def decode_flow(data: bytes, where: str) -> tuple[np.ndarray, np.ndarray | None]:
+    """A flow file's bytes by the extension of its name ``where``: ``(flow, None)`` of a .flo
+    file (values as stored), ``(flow, valid channel)`` of a KITTI PNG (--flow-format)."""
+    if where.endswith(".png"):
+        return decode_kitti_flow(data, where)
+    return decode_flo(data, where), None
 
 
 def write_mask_png(path: Path, mask: np.ndarray) -> None:
@@ -308,11 +385,20 @@ def write_mask_png(path: Path, mask: np.ndarray) -> None:
 def read_mask_png(path: Path) -> np.ndarray:
     """An (H, W) boolean mask from :func:`write_mask_png`'s file. DatasetError naming the file
     when it is missing, does not decode or holds values other than 0 and 255."""
+    try:
+        data = Path(path).read_bytes()
+    except OSError:
+        data = b""
+    return decode_mask_png(data, str(path))
+
+
+def decode_mask_png(data: bytes, where: str) -> np.ndarray:
+    """:func:`read_mask_png` of a mask file's bytes; ``where`` names it in a DatasetError."""
     import cv2
 
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED) if data else None
     if img is None or img.ndim != 2 or img.dtype != np.uint8:
-        raise DatasetError(f"cannot read mask '{path}' (missing, or not an 8-bit grey PNG)")
+        raise DatasetError(f"cannot read mask '{where}' (missing, or not an 8-bit grey PNG)")
     if not np.isin(img, (0, 255)).all():
-        raise DatasetError(f"'{path}': a mask holds only 0 and 255")
+        raise DatasetError(f"'{where}': a mask holds only 0 and 255")
     return img == 255

@@ -11,7 +11,8 @@ is stillbox_gen.record. Pure functions: nothing here reads or writes a file.
         metadata.json       METADATA_JSON: {"args": {...}, "scenes": [record, ...]}
         RGB_<s>_<f>.png     rgb_name(s, f): frame f of scene s = local_index(k)
         depth_<s>_<f>.exr   depth_name(s, f)
-        flow_<s>_<a>_<b>.flo      flow_name(s, a, b): optical flow from frame a to b (--flow)
+        flow_<s>_<a>_<b>.flo      flow_name(s, a, b): optical flow from frame a to b (--flow;
+                                  .png with --flow-format kitti-png)
         valid_<s>_<a>_<b>.png     flow_valid_name(s, a, b): where that flow lands in frame b
         occluded_<s>_<a>_<b>.png  flow_occluded_name(s, a, b): where it is hidden in frame b
         .records/<s>.json   record_name(k): the scene's record, written last (complete mark)
@@ -73,9 +74,16 @@ def depth_name(local: int, frame: int, ext: str = "exr") -> str:
     return f"depth_{local:04d}_{frame:02d}.{ext}"
 
 
-def flow_name(local: int, a: int, b: int) -> str:
-    """``flow_<s>_<a>_<b>.flo``: optical flow from frame ``a`` to frame ``b`` on ``a``'s grid."""
-    return f"flow_{local:04d}_{a:02d}_{b:02d}.flo"
+#: --flow-format (config key render.flow_format): the flow file's format and its extension.
+#: "flo": Middlebury .flo, float32; "kitti-png": KITTI's 16-bit PNG (u, v, valid), 1/64 px.
+FLOW_EXTENSIONS = {"flo": "flo", "kitti-png": "png"}
+FLOW_FORMATS = tuple(FLOW_EXTENSIONS)
+
+
+def flow_name(local: int, a: int, b: int, flow_format: str = "flo") -> str:
+    """``flow_<s>_<a>_<b>.flo`` (``.png`` for "kitti-png"): optical flow from frame ``a`` to
+    frame ``b`` on ``a``'s grid."""
+    return f"flow_{local:04d}_{a:02d}_{b:02d}.{FLOW_EXTENSIONS[flow_format]}"
 
 
 def flow_valid_name(local: int, a: int, b: int) -> str:
@@ -105,14 +113,15 @@ def flow_pairs(frames: int, shifts: tuple[int, ...] = FLOW_SHIFTS) -> list[tuple
     ]
 
 
-def flow_entries(local: int, frames: int) -> list[dict]:
+def flow_entries(local: int, frames: int, flow_format: str = "flo") -> list[dict]:
     """The ``flow`` list of a scene record (docs/FORMAT.md): one entry per pair of
-    :func:`flow_pairs`, ``{"from": a, "to": b, "flow": name, "valid": name, "occluded": name}``."""
+    :func:`flow_pairs`, ``{"from": a, "to": b, "flow": name, "valid": name, "occluded": name}``,
+    the flow file in ``flow_format`` (FLOW_FORMATS)."""
     return [
         {
             "from": a,
             "to": b,
-            "flow": flow_name(local, a, b),
+            "flow": flow_name(local, a, b, flow_format),
             "valid": flow_valid_name(local, a, b),
             "occluded": flow_occluded_name(local, a, b),
         }

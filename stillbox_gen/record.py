@@ -109,13 +109,15 @@ class SceneSpec:
         )
 
 
-def scene_record(spec: dict, image_format: str, legacy: bool, flow: bool = False) -> dict:
+def scene_record(
+    spec: dict, image_format: str, legacy: bool, flow: bool = False, flow_format: str = "flo"
+) -> dict:
     """The metadata.json entry of one scene, built from its SceneSpec dict.
 
     Original StillBox keys first (imgs, depth, speed, time_step, length, orientation), then ours;
     with ``flow`` (--flow), ``flow`` lists the flow and mask files of each frame pair
-    (stillbox_gen.layout.flow_entries); ``sha256`` ({file name: digest}) is added last, once the
-    files are written.
+    (stillbox_gen.layout.flow_entries, flow files in ``flow_format``); ``sha256`` ({file name:
+    digest}) is added last, once the files are written.
     """
     cam = spec["camera"]
     local, n = local_index(spec["index"]), len(cam["cam2world"])
@@ -146,7 +148,7 @@ def scene_record(spec: dict, image_format: str, legacy: bool, flow: bool = False
         "primitives": spec["primitives"],
         "box": spec["box"],
         "light": spec["light"],
-        **({"flow": flow_entries(local, n)} if flow else {}),
+        **({"flow": flow_entries(local, n, flow_format)} if flow else {}),
     }
 
 

@@ -20,7 +20,8 @@ _flow_entry = {
     "properties": {
         "from": _frame,
         "to": _frame,
-        "flow": {"type": "string", "pattern": r"^flow_\d+_\d+_\d+\.flo$"},
+        # Middlebury .flo, or KITTI's 16-bit PNG (--flow-format kitti-png)
+        "flow": {"type": "string", "pattern": r"^flow_\d+_\d+_\d+\.(flo|png)$"},
         "valid": {"type": "string", "pattern": r"^valid_\d+_\d+_\d+\.png$"},
         "occluded": {"type": "string", "pattern": r"^occluded_\d+_\d+_\d+\.png$"},
     },

@@ -57,10 +57,11 @@ def _check_frame(root: Path, rgb: str, depth: str, w: int, h: int) -> list[str]:
 
 
 def _check_flow(root: Path, chunk: str, entry: dict, w: int, h: int) -> list[str]:
-    """Pixel checks of one stored flow pair (--flow): sizes, masks, finite where valid."""
+    """Pixel checks of one stored flow pair (--flow): sizes, masks, finite where valid; a KITTI
+    PNG's valid channel equal to the valid mask."""
     name = f"{chunk}/{entry['flow']}"
     try:
-        flow = formats.read_flo(root / chunk / entry["flow"])
+        flow, channel = formats.decode_flow(formats.read_file(root / name, "flow"), name)
         valid = formats.read_mask_png(root / chunk / entry["valid"])
         occluded = formats.read_mask_png(root / chunk / entry["occluded"])
     except DatasetError as e:
@@ -72,6 +73,8 @@ def _check_flow(root: Path, chunk: str, entry: dict, w: int, h: int) -> list[str
         problems.append(f"{chunk}/{entry['occluded']}: occluded pixels outside the valid mask")
     if not np.all(np.abs(flow[valid]) < formats.FLO_UNKNOWN / 10):
         problems.append(f"{name}: flow not finite at valid pixels")
+    if channel is not None and not np.array_equal(channel, valid):
+        problems.append(f"{name}: its valid channel differs from {chunk}/{entry['valid']}")
     return problems
 
 
@@ -237,7 +240,8 @@ def _scene_config_problems(s: dict, cfg: config.DatasetConfig, where: str) -> li
             f"{where}: time_step {s['time_step']} differs from dataset.json's config "
             f"({c.time_step})"
         )
-    want = flow_entries(s["scene_in_chunk"], s["length"]) if cfg.render.flow else None
+    r = cfg.render
+    want = flow_entries(s["scene_in_chunk"], s["length"], r.flow_format) if r.flow else None
     if s.get("flow") != want:
         said = "its flow files" if cfg.render.flow else "no flow files (made without --flow)"
         problems.append(f"{where}: flow entries differ from dataset.json's config ({said})")

@@ -205,7 +205,8 @@ def commit_scene(
     tmp = out / layout.scene_tmp_name(spec["index"])
     chunk_dir = tmp.parent
     with measure(times, "commit"):
-        record = scene_record(spec, cfg.render.image_format, cfg.render.legacy, cfg.render.flow)
+        r = cfg.render
+        record = scene_record(spec, r.image_format, r.legacy, r.flow, r.flow_format)
     if cfg.render.flow:
         with measure(times, "flow"):
             write_scene_flow(tmp, record)

@@ -1,23 +1,26 @@
 """Optical-flow ground truth on disk (``stillbox-gen --flow``, stillbox_gen.flow): the stored flow
 against an independent projection, a warp of the rendered frames with it, validation of its
-files, and the .flo format."""
+files, the .flo format, and KITTI's 16-bit PNG (``--flow-format kitti-png``) decoded here apart
+from the package."""
 
 from __future__ import annotations
 
 import json
 import shutil
+import struct
+import zlib
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 import torch
-from conftest import TINY_SHARES, invoke_main, run_cli
+from conftest import TINY_SHARES, assert_user_error, invoke_cli, invoke_main, run_cli
 
 from stillbox_gen import formats, layout
 from stillbox_gen.dataset import Dataset
-from stillbox_gen.errors import DatasetError
-from stillbox_gen.flow import OCCLUSION_TOLERANCE
+from stillbox_gen.errors import ConfigError, DatasetError
+from stillbox_gen.flow import OCCLUSION_TOLERANCE, write_scene_flow
 from stillbox_gen.layout import FLOW_SHIFTS, flow_pairs
 from stillbox_gen.validate import validate_dataset
 
@@ -267,3 +270,188 @@ def csv_rows(path: Path) -> list[dict]:
     import csv
 
     return list(csv.DictReader(path.open()))
+
+
+# ---------------------------------------------------------------- KITTI's 16-bit PNG
+
+
+@pytest.fixture(scope="module")
+def kitti(stabilised, tmp_path_factory) -> Path:
+    """The first 2 scenes of ``stabilised`` rendered again with ``--flow-format kitti-png`` alone
+    (it implies --flow): the same seed, so the same frames and depth."""
+    seed = json.loads((stabilised / layout.DATASET_JSON).read_text())["seed"]
+    out = tmp_path_factory.mktemp("flow") / "kitti"
+    run_cli("--res", 64, "--workers", 1, "--threads", 1, "--quiet", "--flow-format", "kitti-png",
+            "--scenes", 2, "--seed", seed, "--split", ",".join(map(str, TINY_SHARES)),
+            "--out", out)  # fmt: skip
+    return out
+
+
+def png_rgb16(path: Path) -> np.ndarray:
+    """(H, W, 3) uint16 of a 16-bit RGB PNG in the file's channel order (R, G, B), decoded here
+    with zlib and plain Python (no OpenCV, whose arrays are in B, G, R order): chunks, the
+    scanline filters of the PNG specification, big-endian samples."""
+    data = Path(path).read_bytes()
+    assert data[:8] == b"\x89PNG\r\n\x1a\n"
+    pos, idat, head = 8, b"", None
+    while pos < len(data):
+        n, kind = struct.unpack(">I4s", data[pos : pos + 8])
+        body = data[pos + 8 : pos + 8 + n]
+        head = struct.unpack(">IIBBBBB", body) if kind == b"IHDR" else head
+        idat += body if kind == b"IDAT" else b""
+        pos += 12 + n
+    w, h, depth, colour, _, _, interlace = head
+    assert (depth, colour, interlace) == (16, 2, 0)  # 16 bits, truecolour RGB, not interlaced
+    bpp, stride = 6, 6 * w
+    raw = zlib.decompress(idat)
+    prev, rows = [0] * stride, []
+    for y in range(h):
+        kind, line = raw[y * (stride + 1)], raw[y * (stride + 1) + 1 : (y + 1) * (stride + 1)]
+        row = [0] * stride
+        for i in range(stride):
+            a, b = row[i - bpp] if i >= bpp else 0, prev[i]
+            c = prev[i - bpp] if i >= bpp else 0
+            if kind == 4:  # Paeth
+                p = a + b - c
+                pa, pb, pc = abs(p - a), abs(p - b), abs(p - c)
+                pred = a if pa <= pb and pa <= pc else b if pb <= pc else c
+            else:
+                pred = (0, a, b, (a + b) // 2)[kind]
+            row[i] = (line[i] + pred) % 256
+        rows.append(row)
+        prev = row
+    pairs = np.array(rows, np.uint16).reshape(h, w, 3, 2)
+    return pairs[..., 0] * np.uint16(256) + pairs[..., 1]
+
+
+def kitti_decoded(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """KITTI's formula on :func:`png_rgb16`: ((H, W, 2) float64 (u, v) = (R, G) − 2**15) / 64,
+    pixels), B as the valid flag (0 or 1)."""
+    rgb = png_rgb16(path).astype(np.float64)
+    return (rgb[..., :2] - 2**15) / 64, rgb[..., 2]
+
+
+@pytest.mark.render
+def test_kitti_png_flow_is_the_flo_flow_to_a_64th_of_a_pixel(stabilised, kitti):
+    """--flow-format kitti-png: every pair's PNG, decoded here by KITTI's formula, holds the .flo
+    dataset's flow to 1/128 px (rounded to 1/64 px steps) where valid, its valid channel is the
+    .flo dataset's valid mask (at 64 px every valid flow fits KITTI's ±512 px), u = v = valid =
+    0 elsewhere; the masks are the same files; the reader returns the decoded values; validate
+    accepts the dataset. Prints the sizes of the flow files of both formats."""
+    assert validate_dataset(kitti)[0] == []
+    flo_ds, png_ds = Dataset(stabilised), Dataset(kitti)
+    sizes, steps = np.zeros(2), set()
+    for png_scene in png_ds.scenes():
+        flo_scene = flo_ds.scene(png_scene.index)
+        assert png_scene.depth[0].read_bytes() == flo_scene.depth[0].read_bytes()
+        assert sorted(png_scene.flow_files) == sorted(flow_pairs(png_scene.frames))
+        for (a, b), files in png_scene.flow_files.items():
+            want = flo_scene.flow_files[a, b]
+            assert files["flow"].name == layout.flow_name(layout.local_index(png_scene.index),
+                                                          a, b, "kitti-png")  # fmt: skip
+            assert files["flow"].suffix == ".png" and want["flow"].suffix == ".flo"
+            for k in ("valid", "occluded"):
+                assert files[k].read_bytes() == want[k].read_bytes(), (a, b, k)
+            flo = formats.read_flo(want["flow"]).astype(np.float64)
+            valid = formats.read_mask_png(want["valid"])
+            uv, flag = kitti_decoded(files["flow"])
+            assert np.array_equal(flag, valid.astype(np.float64))
+            err = np.abs(uv - flo)[valid]
+            assert err.max() <= 1 / 128, (a, b, err.max())
+            assert np.all(uv[~valid] == -512)  # stored 0
+            steps.update(np.unique(np.rint((uv[valid] - flo[valid]) * 1024)).tolist())
+            flow, got_valid, _ = png_scene.load_flow(a, b)
+            assert np.array_equal(got_valid, valid)
+            assert np.array_equal(flow[valid], uv[valid].astype(np.float32))
+            assert np.isnan(flow[~valid]).all()
+            sizes += [files["flow"].stat().st_size, want["flow"].stat().st_size]
+    assert len(steps) > 8  # rounding errors spread over (−1/128, 1/128): not a constant offset
+    print(f"flow files of {len(png_ds.scenes())} scenes at 64 px: KITTI PNG {sizes[0]:,.0f} "
+          f"bytes, .flo {sizes[1]:,.0f} bytes ({sizes[0] / sizes[1]:.2f})")  # fmt: skip
+
+
+def test_kitti_png_out_of_range_and_undefined_flow_is_not_valid(tmp_path):
+    """A valid flow beyond KITTI's 16 bits (about ±512 px) is stored as not valid, in both the
+    PNG's valid channel and the valid mask (and not occluded), while the .flo file keeps it: a
+    1100 px wide, 2 px high frame pair, the camera moving 6 m right past surfaces 1 m (row 0:
+    flow −600 px) and 2 m away (row 1: −300 px). The encoder itself: KITTI's bounds, NaN."""
+    w, f = 1100, 100.0
+    depth = np.array([[1.0] * w, [2.0] * w], np.float32)
+    moved = np.eye(4)
+    moved[0, 3] = 6.0
+    masks = {}
+    for flow_format in ("flo", "kitti-png"):
+        folder = tmp_path / flow_format
+        folder.mkdir()
+        record = {
+            "depth_exr": ["d0.exr", "d1.exr"],
+            "K": [[f, 0, (w - 1) / 2], [0, f, 0.5], [0, 0, 1]],
+            "cam2world": [np.eye(4).tolist(), moved.tolist()],
+            "flow": layout.flow_entries(0, 2, flow_format),
+        }
+        for name in record["depth_exr"]:
+            formats.write_depth_exr(folder / name, depth)
+        write_scene_flow(folder, record)
+        entry = record["flow"][0]  # (0, 1)
+        assert (entry["from"], entry["to"]) == (0, 1)
+        masks[flow_format] = formats.read_mask_png(folder / entry["valid"])
+        assert not formats.read_mask_png(folder / entry["occluded"]).any()
+        if flow_format == "flo":
+            flo = formats.read_flo(folder / entry["flow"])
+            assert np.allclose(flo[0, 600:, 0], -600) and np.allclose(flo[1, 300:, 0], -300)
+        else:
+            uv, flag = kitti_decoded(folder / entry["flow"])
+            assert np.array_equal(flag, masks[flow_format])
+            assert np.abs(uv[1, 300:, 0] + 300).max() <= 1 / 128 and not uv[1, 300:, 1].any()
+    inside = np.zeros((2, w), bool)
+    inside[0, 600:], inside[1, 300:] = True, True
+    assert np.array_equal(masks["flo"], inside)
+    assert np.array_equal(masks["kitti-png"], inside & [[False], [True]])
+
+    flow = np.array([[[511.984375, -512.0], [511.995, 0.0], [-512.01, 3.0], [np.nan, 0.0]]])
+    valid = np.array([[True, False, False, False]])
+    assert formats.kitti_representable(flow).tolist() == [[True, False, False, False]]
+    path = tmp_path / "bounds.png"
+    path.write_bytes(formats.kitti_flow_bytes(flow, valid))
+    rgb = png_rgb16(path)
+    assert rgb.tolist() == [[[65535, 0, 1], [0, 0, 0], [0, 0, 0], [0, 0, 0]]]
+    with pytest.raises(ValueError, match="beyond KITTI's range"):
+        formats.kitti_flow_bytes(flow, np.ones((1, 4), bool))
+
+
+@pytest.mark.render
+def test_validate_names_a_kitti_valid_channel_that_differs_from_its_mask(kitti, tmp_path):
+    """A KITTI PNG whose valid channel no longer matches its valid mask is named by validate and
+    refused by the reader."""
+    copy = tmp_path / "ds"
+    shutil.copytree(kitti, copy)
+    scene = Dataset(copy).scene(0)
+    path = scene.flow_files[0, 1]["flow"]
+    bgr = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    bgr[0, 0, 0] = 1 - bgr[0, 0, 0]  # OpenCV's channel 0 is the file's B: valid
+    cv2.imwrite(str(path), bgr)
+    problems = validate_dataset(copy)[0]
+    assert any(path.name in p and "valid channel differs" in p for p in problems), problems
+    with pytest.raises(DatasetError, match="valid channel differs"):
+        scene.load_flow(0, 1)
+
+
+def test_flow_format_implies_flow_and_a_preset_needs_render_flow(tmp_path):
+    """--flow-format sets render.flow too; a preset with render.flow_format but no render.flow
+    is refused naming the key; an unknown format is refused by the option."""
+    from stillbox_gen import cli
+
+    ctx = cli.generate.make_context("generate", ["--flow-format", "kitti-png"])
+    cfg = cli.build_config(ctx.params)
+    assert cfg.render.flow and cfg.render.flow_format == "kitti-png"
+    assert "flow_format" in cfg.to_dict()["render"]
+    plain = cli.build_config(cli.generate.make_context("generate", ["--flow"]).params)
+    assert "flow_format" not in plain.to_dict()["render"]  # older fingerprints unchanged
+    preset = tmp_path / "p.toml"
+    preset.write_text('[render]\nflow_format = "kitti-png"\n')
+    ctx = cli.generate.make_context("generate", ["--preset", str(preset)])
+    with pytest.raises(ConfigError, match=r"render\.flow_format 'kitti-png' needs render\.flow"):
+        cli.build_config(ctx.params)
+    out = tmp_path / "never"
+    assert_user_error(invoke_cli("--flow-format", "exr", "--out", out), "--flow-format")
+    assert not out.exists()
