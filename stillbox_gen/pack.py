@@ -23,12 +23,14 @@ from typing import BinaryIO
 from . import formats, layout
 from .dataset import Dataset, Scene
 from .errors import ConfigError
+from .layout import FLOW_KEYS
 from .packed import (
     INDEX_JSON,
     PACK_FORMAT,
     PACK_VERSION,
     SPLIT_ORDER,
     depth_member,
+    flow_member,
     record_member,
     rgb_member,
     shard_name,
@@ -91,24 +93,32 @@ def check_source(dataset: Path) -> None:
 
 
 def _scene_files(root: Path, scene: Scene) -> dict[str, bytes]:
-    """{member name: bytes} of a scene: its record, RGB and depth files (the --legacy copies
-    are left out: they repeat the same frames). Each file is checked against the SHA-256 of its
-    record when the record has them (ConfigError in ``validate``'s words)."""
+    """{member name: bytes} of a scene: its record, RGB and depth files and, with --flow, its
+    flow and mask files (the --legacy copies are left out: they repeat the same frames). Each
+    file is checked against the SHA-256 of its record when the record has them (ConfigError in
+    ``validate``'s words)."""
     rec, chunk = scene.record, layout.chunk_name(scene.index)
     sums = rec.get("sha256") or {}
     members = {record_member(scene.index): (json.dumps(rec, allow_nan=False) + "\n").encode()}
-    for f in range(scene.frames):
+    files = [
+        (name, path, member)
+        for f in range(scene.frames)
         for name, path, member in (
             (rec["rgb"][f], scene.rgb[f], rgb_member(scene.index, f, rec["rgb"][f])),
             (rec["depth_exr"][f], scene.depth[f], depth_member(scene.index, f)),
-        ):
-            data = path.read_bytes()
-            if name in sums and hashlib.sha256(data).hexdigest() != sums[name]:
-                raise ConfigError(
-                    f"DATASET: '{root}': {chunk}/{name}: SHA-256 differs from the record of "
-                    f"scene {scene.index} (the file was changed, replaced or swapped)"
-                )
-            members[member] = data
+        )
+    ]
+    for entry in rec.get("flow", []):
+        paths = scene.flow_files[entry["from"], entry["to"]]
+        files += [(entry[k], paths[k], flow_member(scene.index, entry, k)) for k in FLOW_KEYS]
+    for name, path, member in files:
+        data = path.read_bytes()
+        if name in sums and hashlib.sha256(data).hexdigest() != sums[name]:
+            raise ConfigError(
+                f"DATASET: '{root}': {chunk}/{name}: SHA-256 differs from the record of "
+                f"scene {scene.index} (the file was changed, replaced or swapped)"
+            )
+        members[member] = data
     return members
 
 

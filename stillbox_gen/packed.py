@@ -15,7 +15,9 @@ stillbox_gen.torch_dataset.StillBoxPackedPairs).
 
 Member names (WebDataset's convention: the sample key is the name up to the first dot):
 ``<key>.json`` the scene's record, ``<key>.rgb_<f>.<png|jpg>`` and ``<key>.depth_<f>.exr`` frame
-f's files, with ``<key>`` the global scene index in 7 digits.
+f's files, with ``<key>`` the global scene index in 7 digits; with --flow, also
+``<key>.flow_<a>_<b>.<flo|png>``, ``<key>.valid_<a>_<b>.png`` and ``<key>.occluded_<a>_<b>.png``,
+the files of the pair (a, b) (:meth:`PackedScene.load_flow`; packs of pack_version 1 have none).
 """
 
 from __future__ import annotations
@@ -33,11 +35,13 @@ from pathlib import Path, PurePosixPath
 import numpy as np
 
 from . import formats, layout
-from .dataset import Scene
+from .dataset import Scene, decode_flow_files
 from .errors import DatasetError
 
 PACK_FORMAT = "webdataset"
-PACK_VERSION = 1
+# 2: the --flow files are packed too (flow_member); a version-1 pack is read without them
+PACK_VERSION = 2
+READ_PACK_VERSIONS = (1, 2)
 INDEX_JSON = "index.json"
 SPLIT_ORDER = ("train", "val", "test")  # shards are numbered split by split in this order
 KEY_DIGITS = 7  # LIMITS["scenes"] is 10 M: every key has the same width, names sort by scene
@@ -68,6 +72,13 @@ def rgb_member(index: int, frame: int, name: str = "x.png") -> str:
 def depth_member(index: int, frame: int) -> str:
     """``<key>.depth_<f>.exr``: frame ``frame``'s depth EXR."""
     return f"{scene_key(index)}.depth_{frame:02d}.exr"
+
+
+def flow_member(index: int, entry: dict, key: str) -> str:
+    """``<key>.<kind>_<a>_<b>.<ext>``: the file ``key`` (layout.FLOW_KEYS: flow, valid,
+    occluded) of the record's flow entry ``entry`` (frames a to b), ``ext`` that of its file."""
+    a, b = entry["from"], entry["to"]
+    return f"{scene_key(index)}.{key}_{a:02d}_{b:02d}{PurePosixPath(entry[key]).suffix}"
 
 
 def decode_rgb(data: bytes, where: str) -> np.ndarray:
@@ -102,6 +113,8 @@ class PackedScene(Scene):
 
     rgb_data: list[bytes] = field(default_factory=list, repr=False)
     depth_data: list[bytes] = field(default_factory=list, repr=False)
+    # --flow: {(a, b): {key of layout.FLOW_KEYS: bytes}}, named in ``flow_files`` (members)
+    flow_data: dict[tuple[int, int], dict[str, bytes]] = field(default_factory=dict, repr=False)
 
     def load_rgb(self, frame: int) -> np.ndarray:
         """Frame ``frame`` as (H, W, 3) uint8, RGB order, 8-bit sRGB."""
@@ -110,6 +123,14 @@ class PackedScene(Scene):
     def load_depth(self, frame: int) -> np.ndarray:
         """Planar depth of frame ``frame`` as (H, W) float32 metres (not clipped)."""
         return decode_depth(self.depth_data[frame], str(self.depth[frame]))
+
+    def load_flow(self, a: int, b: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`Scene.load_flow` from the shard's members: ``(flow, valid, occluded)``, flow
+        (H, W, 2) float32 pixels NaN where not valid, the same bits as the folder's."""
+        files = self.flow_files.get((a, b))
+        if files is None:
+            raise DatasetError(f"scene {self.index}: no packed flow from frame {a} to frame {b}")
+        return decode_flow_files(self.flow_data[a, b], {k: str(p) for k, p in files.items()})
 
 
 @dataclass(frozen=True)
@@ -172,10 +193,10 @@ class PackedDataset:
         index = self.index
         if not isinstance(index, dict) or index.get("format") != PACK_FORMAT:
             raise DatasetError(f"{where}: not a '{PACK_FORMAT}' pack index")
-        if index.get("pack_version") != PACK_VERSION:
+        if index.get("pack_version") not in READ_PACK_VERSIONS:
             raise DatasetError(
                 f"{where}: pack_version {index.get('pack_version')!r}, this reader reads "
-                f"{PACK_VERSION}"
+                f"{' and '.join(map(str, READ_PACK_VERSIONS))}"
             )
         shards = []
         try:
@@ -277,8 +298,16 @@ class PackedDataset:
                 raise DatasetError(f"{where}: its record disagrees with {INDEX_JSON}")
             rgb = [rgb_member(index, f, n).partition(".")[2] for f, n in enumerate(names)]
             depth = [depth_member(index, f).partition(".")[2] for f in range(frames)]
-            missing = sorted(set(rgb + depth) - set(members))
-            extra = sorted(set(members) - set(rgb + depth))
+            # {(a, b): {file key: member extension}}; version 1 packed no flow
+            entries = rec.get("flow", []) if self.index["pack_version"] >= 2 else []
+            flow = {
+                (e["from"], e["to"]): {
+                    k: flow_member(index, e, k).partition(".")[2] for k in layout.FLOW_KEYS
+                }
+                for e in entries
+            }
+            wanted = {*rgb, *depth, *(m for f in flow.values() for m in f.values())}
+            missing, extra = sorted(wanted - set(members)), sorted(set(members) - wanted)
             if missing or extra:
                 raise DatasetError(f"{where}: missing members {missing}, unexpected {extra}")
             return PackedScene(
@@ -293,6 +322,11 @@ class PackedDataset:
                 record=rec,
                 rgb_data=[members[m] for m in rgb],
                 depth_data=[members[m] for m in depth],
+                flow_files={
+                    pair: {k: shard.path / f"{key}.{m}" for k, m in f.items()}
+                    for pair, f in flow.items()
+                },
+                flow_data={pair: {k: members[m] for k, m in f.items()} for pair, f in flow.items()},
             )
         except (KeyError, TypeError, ValueError) as e:
             if isinstance(e, DatasetError):

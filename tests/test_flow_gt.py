@@ -1,13 +1,14 @@
 """Optical-flow ground truth on disk (``stillbox-gen --flow``, stillbox_gen.flow): the stored flow
 against an independent projection, a warp of the rendered frames with it, validation of its
-files, the .flo format, and KITTI's 16-bit PNG (``--flow-format kitti-png``) decoded here apart
-from the package."""
+files, the .flo format, KITTI's 16-bit PNG (``--flow-format kitti-png``) decoded here apart from
+the package, and the flow files carried by ``stillbox-gen pack``."""
 
 from __future__ import annotations
 
 import json
 import shutil
 import struct
+import tarfile
 import zlib
 from pathlib import Path
 
@@ -455,3 +456,54 @@ def test_flow_format_implies_flow_and_a_preset_needs_render_flow(tmp_path):
     out = tmp_path / "never"
     assert_user_error(invoke_cli("--flow-format", "exr", "--out", out), "--flow-format")
     assert not out.exists()
+
+
+# ---------------------------------------------------------------- packed shards carry the flow
+
+
+@pytest.mark.render
+@pytest.mark.parametrize("which", ["stabilised", "kitti"])
+def test_pack_carries_the_flow_files_bit_for_bit(which, request, tmp_path):
+    """``stillbox-gen pack``: every flow pair of every scene is in the shards under its
+    documented member names, and PackedScene.load_flow returns the folder's flow and masks bit
+    for bit (NaN included); the members are the folder's files byte for byte."""
+    from stillbox_gen.packed import PackedDataset
+
+    root = request.getfixturevalue(which)
+    out = tmp_path / "P"
+    result = invoke_cli("pack", root, "--format", "webdataset", "--out", out,
+                        "--scenes-per-shard", 1)  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    folder, pack = Dataset(root), PackedDataset(out)
+    assert pack.index["pack_version"] == 2
+    scenes = 0
+    for s in pack.scenes():
+        f = folder.scene(s.index)
+        assert sorted(s.flow_files) == sorted(f.flow_files) == sorted(flow_pairs(f.frames))
+        for a, b in f.flow_files:
+            got, want = s.load_flow(a, b), f.load_flow(a, b)
+            for x, y in zip(got, want, strict=True):
+                assert x.dtype == y.dtype and x.tobytes() == y.tobytes(), (s.index, a, b)
+        shard = next(sh for sh in pack.shards if s.index in sh.scenes)
+        with tarfile.open(shard.path) as tar:
+            for (a, b), files in f.flow_files.items():
+                for k, path in files.items():
+                    member = f"{s.index:07d}.{k}_{a:02d}_{b:02d}{path.suffix}"
+                    assert tar.extractfile(member).read() == path.read_bytes()
+        scenes += 1
+    assert scenes == len(folder.indices())
+
+
+@pytest.mark.render
+def test_pack_refuses_a_changed_flow_file(stabilised, tmp_path):
+    """A flow mask changed after generation fails its record's SHA-256 while packing: refused in
+    one line naming the file, nothing left in --out."""
+    copy = tmp_path / "ds"
+    shutil.copytree(stabilised, copy)
+    path = Dataset(copy).scene(0).flow_files[1, 0]["valid"]
+    mask = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    cv2.imwrite(str(path), 255 - mask)
+    out = tmp_path / "P"
+    result = invoke_cli("pack", copy, "--format", "webdataset", "--out", out)
+    assert_user_error(result, path.name, "SHA-256")
+    assert not out.exists() or not any(out.iterdir())

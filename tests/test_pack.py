@@ -274,3 +274,24 @@ def test_the_benchmarks_evaluation_pairs_are_the_same(default_dataset, packed):
     assert aggregate(image_metrics(pred, a["target"])) == aggregate(
         image_metrics(pred, b["target"])
     )
+
+
+def test_pack_versions_one_and_two_are_read_and_others_refused(packed, tmp_path):
+    """pack_version 1 (before the --flow files were packed) is read as 2 is; an unknown version
+    is refused in one line naming index.json."""
+    import json
+
+    assert PackedDataset(packed).index["pack_version"] == 2
+    copy = tmp_path / "P"
+    shutil.copytree(packed, copy)
+    index = json.loads((copy / INDEX_JSON).read_text())
+    for version in (1, 3):
+        (copy / INDEX_JSON).write_text(json.dumps({**index, "pack_version": version}))
+        if version == 1:
+            scenes = list(PackedDataset(copy).scenes())
+            assert [s.index for s in scenes] == PackedDataset(packed).indices()
+            assert all(s.flow_files == {} for s in scenes)
+        else:
+            with pytest.raises(DatasetError, match="index.json: pack_version 3") as e:
+                PackedDataset(copy)
+            assert "\n" not in str(e.value)
