@@ -31,6 +31,7 @@ test-kernels: $(STAMP)
 
 # The reader and the benchmark without Blender: a venv with the `bench` extra only (no bpy) runs
 # every test that neither renders nor needs bpy (markers render, blender); tests/test_packaging.py checks that bpy is really absent there.
+# Without the `gen` extra's caps it gets current numpy (2.x), OpenCV and pyarrow.
 BENCH_VENV := .venv-bench
 $(BENCH_VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(BENCH_VENV)

@@ -36,7 +36,12 @@ def test_blender_and_torch_are_extras_not_base_dependencies():
     base = _names(project["dependencies"])
     extras = {k: _names(v) for k, v in project["optional-dependencies"].items()}
     assert not base & {"bpy", "torch", "kornia", "tensorboard", "numba"}
-    assert extras["gen"] == {"bpy"}
+    assert extras["gen"] == {"bpy", "numpy", "opencv-python-headless", "pyarrow"}
+    # only bpy needs numpy < 2 (and the OpenCV and pyarrow releases built for it): no cap in base
+    base_pins = {_names([r]).pop(): r for r in project["dependencies"]}
+    for name in ("numpy", "opencv-python-headless", "pyarrow"):
+        assert "<" not in base_pins[name], base_pins[name]
+    assert "numpy<2" in project["optional-dependencies"]["gen"]
     assert {"torch", "kornia", "tensorboard", "numba"} <= extras["bench"]
     assert "bpy" not in extras["bench"]
 
