@@ -11,6 +11,8 @@
 # validation) and RUNS/MODE/eval-epoch_K (eval-sequences, with the constant plane, and for
 # known-motion also `eval` on the test pairs) for each K in $EVAL_EPOCHS (default: every epoch).
 # STILLBOX_BENCH / STILLBOX_GEN: the commands to use (default: stillbox-bench / stillbox-gen).
+# PRETRAINED: a checkpoint to start from (`run --pretrained`: the networks' weights, a fresh
+# optimiser), e.g. a known-motion run's last epoch to continue it past its planned epochs.
 set -euo pipefail
 MODE=${1:?usage: run.sh orientation|known-motion [EPOCHS] [RUNS]}
 EPOCHS=${2:-10}
@@ -31,7 +33,8 @@ esac
 mkdir -p "$RUNS/kept"
 # shellcheck disable=SC2086
 $B run depthnet-unsup $OPTIONS --data "$DATA" --batch-size 16 --epoch-size 100 \
-    --epochs "$EPOCHS" --ckpt-every 100000 --threads 1 --quiet --out "$RUNS/O" &
+    --epochs "$EPOCHS" --ckpt-every 100000 --threads 1 --quiet --out "$RUNS/O" \
+    ${PRETRAINED:+--pretrained "$PRETRAINED"} &
 run=$!
 rows() { echo $(($(cat "$RUNS/O/metrics.csv" 2>/dev/null | wc -l) - 1)); }
 seen=0
