@@ -13,6 +13,7 @@
 # STILLBOX_BENCH / STILLBOX_GEN: the commands to use (default: stillbox-bench / stillbox-gen).
 # PRETRAINED: a checkpoint to start from (`run --pretrained`: the networks' weights, a fresh
 # optimiser), e.g. a known-motion run's last epoch to continue it past its planned epochs.
+# SMOOTH_WEIGHT: λ of the smooth loss (`run --smooth-weight`; 0: the photometric term alone).
 set -euo pipefail
 MODE=${1:?usage: run.sh orientation|known-motion [EPOCHS] [RUNS]}
 EPOCHS=${2:-10}
@@ -34,7 +35,7 @@ mkdir -p "$RUNS/kept"
 # shellcheck disable=SC2086
 $B run depthnet-unsup $OPTIONS --data "$DATA" --batch-size 16 --epoch-size 100 \
     --epochs "$EPOCHS" --ckpt-every 100000 --threads 1 --quiet --out "$RUNS/O" \
-    ${PRETRAINED:+--pretrained "$PRETRAINED"} &
+    ${PRETRAINED:+--pretrained "$PRETRAINED"} ${SMOOTH_WEIGHT:+--smooth-weight "$SMOOTH_WEIGHT"} &
 run=$!
 rows() { echo $(($(cat "$RUNS/O/metrics.csv" 2>/dev/null | wc -l) - 1)); }
 seen=0
