@@ -233,7 +233,7 @@ def test_run_depthnet_typed_alone_reads_the_default_dataset(tmp_path, monkeypatc
     from click.testing import CliRunner
 
     from benchmark import cli
-    from benchmark.supervised import runner
+    from benchmark.engine import runner
 
     monkeypatch.chdir(tmp_path)
     result = CliRunner().invoke(cli.cli, ["run", "depthnet"])
@@ -362,7 +362,7 @@ def test_oracle_flow_returns_ground_truth_and_constant_is_the_median(tiny_datase
 def test_every_file_of_a_scored_run_is_written_once(tiny_dataset, tmp_path, monkeypatch, model):
     """One writer of the run folder: each report file is written once, atomically, by
     benchmark.core.runfolder (summary.json used to be written again to add entries)."""
-    from benchmark.supervised import runner
+    from benchmark.engine import runner
 
     written = []
 

@@ -23,8 +23,8 @@ from test_bench import bench
 from benchmark.core import registry, runfolder
 from benchmark.core.config import TrainConfig
 from benchmark.core.data import load_scenes
-from benchmark.supervised import train
-from benchmark.supervised.runner import train_config
+from benchmark.engine import pair_step, train
+from benchmark.engine.runner import train_config
 from stillbox_gen.manifest import split_of
 
 
@@ -285,7 +285,7 @@ def test_resumed_epoch_logs_the_uninterrupted_train_loss(
     expected = _rows(uninterrupted / "metrics.csv")
     assert [int(r["step"]) for r in expected] == [7, 14]
     cfg = _config(tiny_dataset, tmp_path / "run")
-    loss, calls = train.multiscale_loss, []
+    loss, calls = pair_step.multiscale_loss, []
 
     def loss_then_ctrl_c(*args):
         calls.append(1)
@@ -293,11 +293,11 @@ def test_resumed_epoch_logs_the_uninterrupted_train_loss(
             signal.raise_signal(sig)
         return loss(*args)
 
-    monkeypatch.setattr(train, "multiscale_loss", loss_then_ctrl_c)
+    monkeypatch.setattr(pair_step, "multiscale_loss", loss_then_ctrl_c)
     with pytest.raises(KeyboardInterrupt):
         _train(cfg)
     assert len(calls) == stop_at
-    monkeypatch.setattr(train, "multiscale_loss", loss)
+    monkeypatch.setattr(pair_step, "multiscale_loss", loss)
     _train(dataclasses.replace(cfg, resume=True))
     got = _rows(Path(cfg.out) / "metrics.csv")
     assert [r["step"] for r in got] == [r["step"] for r in expected]
@@ -348,7 +348,7 @@ def test_resume_keeps_one_tensorboard_point_per_step(tiny_dataset, tmp_path, mon
     and the newest event file got a record cut short) are dropped on --resume: TensorBoard and
     the raw event files hold each train/loss and epoch step once, none missing."""
     cfg = _config(tiny_dataset, tmp_path / "run")
-    out, loss, calls = Path(cfg.out), train.multiscale_loss, []
+    out, loss, calls = Path(cfg.out), pair_step.multiscale_loss, []
 
     def loss_then_ctrl_c(*args):
         calls.append(1)
@@ -356,10 +356,10 @@ def test_resume_keeps_one_tensorboard_point_per_step(tiny_dataset, tmp_path, mon
             signal.raise_signal(signal.SIGINT)
         return loss(*args)
 
-    monkeypatch.setattr(train, "multiscale_loss", loss_then_ctrl_c)
+    monkeypatch.setattr(pair_step, "multiscale_loss", loss_then_ctrl_c)
     with pytest.raises(KeyboardInterrupt):
         _train(cfg)
-    monkeypatch.setattr(train, "multiscale_loss", loss)
+    monkeypatch.setattr(pair_step, "multiscale_loss", loss)
     last = runfolder.checkpoint_path(out, "last")
     at_step_3 = last.read_bytes()
     _train(dataclasses.replace(cfg, resume=True))
@@ -513,13 +513,13 @@ def test_huge_lr_stops_on_the_first_non_finite_value(tiny_dataset, tmp_path):
 def test_nan_loss_keeps_the_last_good_checkpoint(tiny_dataset, tmp_path, monkeypatch):
     """The loss turns NaN at step 3 (checkpoints every step): training stops there in one line
     naming step 3, and last.pt is step 2's, with finite weights."""
-    loss, calls = train.multiscale_loss, []
+    loss, calls = pair_step.multiscale_loss, []
 
     def nan_at_step_3(*args):
         calls.append(1)
         return loss(*args) * (math.nan if len(calls) == 3 else 1.0)
 
-    monkeypatch.setattr(train, "multiscale_loss", nan_at_step_3)
+    monkeypatch.setattr(pair_step, "multiscale_loss", nan_at_step_3)
     cfg = dataclasses.replace(_config(tiny_dataset, tmp_path / "run"), ckpt_every=1)
     with pytest.raises(train.NonFiniteLoss, match=r"loss is nan at step 3 \(epoch 0\)"):
         _train(cfg)

@@ -12,7 +12,7 @@ from test_bench import bench
 from benchmark.core import registry
 from benchmark.core.data import STILL_TARGET, FrameStore, PairDataset, load_scenes
 from benchmark.core.models import DepthNet, count_parameters
-from benchmark.supervised import evaluate
+from benchmark.engine import evaluate
 from stillbox_gen.conventions import MAX_DEPTH, NOMINAL_SHIFT
 
 

@@ -16,8 +16,8 @@ from test_bench_hardening import assert_bench_error
 from test_infer import _checkpoint, _frames, _write_folder
 
 from benchmark import cli
-from benchmark.video import export
-from benchmark.video.network import depth_network
+from benchmark.engine import export
+from benchmark.engine.network import depth_network
 
 pytest.importorskip("onnxruntime")
 pytest.importorskip("safetensors")

@@ -19,11 +19,11 @@ from test_infer import SIZE, _checkpoint, _frames, _write_folder
 from benchmark import cli
 from benchmark.core import registry
 from benchmark.core.checkpoint import load_checkpoint, load_weights
+from benchmark.core.footage import Crop
 from benchmark.core.posenet import DepthPoseNet
+from benchmark.engine.network import depth_network
 from benchmark.unsupervised.finetune import FinetuneOptions, Finetuner
 from benchmark.unsupervised.footage_sequences import frame_stride, moving_stretches, prepared_K
-from benchmark.video.footage import Crop
-from benchmark.video.network import depth_network
 
 #: the footage moves 0.3 m a frame (3 m/s at 10 frames/s); the checkpoint's d0 is 0.3 m for a
 #: shift of 3 frames: 0.1 m a training frame, so every frame is kept (stride 1): 4 sequences

@@ -24,15 +24,15 @@ from conftest import invoke_main
 
 from benchmark import cli
 from benchmark.core import registry
-from benchmark.video.footage import (
+from benchmark.core.footage import (
     Crop,
     constant_speed_positions,
     crop_box,
     focal_px,
     read_poses,
 )
-from benchmark.video.multishift import displacements
-from benchmark.video.network import depth_network
+from benchmark.core.multishift import displacements
+from benchmark.engine.network import depth_network
 
 FRAMES, SIZE, FPS = 8, 64, 10.0
 
@@ -390,8 +390,8 @@ def test_rendered_scene_as_mp4_and_as_frames(tiny_dataset, files, tmp_path):
     with --fixed-shift 3 at 0.1 m per frame give the depth `eval` computes for the pairs
     (t − 3, t) (the same network, scale and upsampling)."""
     from benchmark.core.data import load_scenes
-    from benchmark.supervised.evaluate import Method, predict
-    from benchmark.supervised.runner import eval_split
+    from benchmark.engine.evaluate import Method, predict
+    from benchmark.engine.runner import eval_split
 
     scene = load_scenes(tiny_dataset, "test")[0]
     frames = [scene.load_rgb(f) for f in range(scene.frames)]

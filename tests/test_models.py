@@ -162,7 +162,7 @@ def test_init_statistics(depthnet):
 
 def test_multiscale_l1_by_hand():
     """Each output against the target area-averaged to its size, weighted (thesis 3.6)."""
-    from benchmark.supervised.train import multiscale_loss
+    from benchmark.engine.pair_step import multiscale_loss
 
     target = torch.tensor([[1.0, 1, 3, 3], [1, 1, 3, 3], [5, 5, 7, 7], [5, 5, 7, 7]])[None]
     outputs = [torch.full((1, 1, 2, 2), 3.0), torch.full((1, 1, 1, 1), 5.0)]
@@ -174,7 +174,7 @@ def test_multiscale_l1_by_hand():
 def test_multiscale_epe_averages_valid_pixels_only():
     """Flow targets: each output pixel against the mean of the *valid* target pixels under it;
     output pixels over no valid pixel are left out."""
-    from benchmark.supervised.train import multiscale_loss
+    from benchmark.engine.pair_step import multiscale_loss
 
     target = torch.empty(1, 2, 4, 4)
     target[:, 0], target[:, 1] = 3.0, 4.0  # EPE 5 against zero flow
@@ -241,7 +241,7 @@ def test_untrained_flow_head_predicts_zero_flow_and_depth_head_does_not():
 
 
 def test_flow_recipe_is_the_public_flownets_adam():
-    from benchmark.supervised.runner import train_config
+    from benchmark.engine.runner import train_config
 
     cfg = train_config("flownets-flow", Path("d"), Path("o"))
     assert (cfg.optimizer, cfg.lr, cfg.momentum, cfg.beta2) == ("adam", 1e-4, 0.9, 0.999)
@@ -265,7 +265,7 @@ def test_flownets_trains_on_flow():
     """Steps of the recipe's optimizer (Adam) lower the multi-scale EPE of the tiny flow variant
     from its zero-flow start, towards a flow field with structure (a zero-mean random field
     would already be best matched by zero flow)."""
-    from benchmark.supervised.train import multiscale_loss
+    from benchmark.engine.pair_step import multiscale_loss
 
     torch.manual_seed(0)
     model = build_model("flownets-flow-tiny").train()

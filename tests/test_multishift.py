@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from benchmark.video.multishift import (
+from benchmark.core.multishift import (
     BETA_MAX,
     BETA_MEAN,
     BETA_MIN,

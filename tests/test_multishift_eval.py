@@ -10,7 +10,7 @@ import pytest
 from test_bench import bench
 
 from benchmark.cli.options import user_error
-from benchmark.video.multishift import displacements
+from benchmark.core.multishift import displacements
 from benchmark.video.multishift_eval import BANDS, band_key, strategies
 from stillbox_gen.dataset import Dataset
 

@@ -15,7 +15,7 @@ from test_bench import bench
 
 from benchmark.core import metrics, runfolder
 from benchmark.core.data import load_scenes, read_depth
-from benchmark.supervised.predictions import PNG_SCALE
+from benchmark.engine.predictions import PNG_SCALE
 from stillbox_gen.conventions import NOMINAL_SHIFT
 
 pytestmark = pytest.mark.render

@@ -1,4 +1,4 @@
-"""benchmark.supervised.plots: the data each figure draws (read back from its axes), and the PNG
+"""benchmark.engine.plots: the data each figure draws (read back from its axes), and the PNG
 write."""
 
 from __future__ import annotations
@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from benchmark.supervised import plots
+from benchmark.engine import plots
 
 
 def curve(ax, i: int = 0) -> tuple[np.ndarray, np.ndarray]:

@@ -24,8 +24,8 @@ from conftest import run_cli
 
 from benchmark.core import registry
 from benchmark.core.data import FrameStore, PairDataset, load_scenes
-from benchmark.supervised import runner
-from benchmark.supervised.evaluate import Method, evaluate
+from benchmark.engine import runner
+from benchmark.engine.evaluate import Method, evaluate
 from stillbox_gen.conventions import MAX_DEPTH, NOMINAL_SHIFT
 
 pytestmark = [pytest.mark.positive_control, pytest.mark.usefixtures("one_torch_thread")]

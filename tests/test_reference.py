@@ -12,7 +12,8 @@ import torch
 from benchmark.core import registry
 from benchmark.core.checkpoint import load_checkpoint, load_weights
 from benchmark.core.errors import FieldError
-from benchmark.supervised import reference, reference_launcher, runner
+from benchmark.engine import runner
+from benchmark.supervised import reference, reference_launcher
 
 
 def test_convert_keeps_the_authors_weights(tiny_dataset, tmp_path):

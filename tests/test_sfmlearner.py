@@ -19,7 +19,7 @@ from benchmark.core.data import FrameStore, load_scenes
 from benchmark.core.dispnet import ALPHA, BETA, DispNet, SfmLearnerNet
 from benchmark.core.errors import FieldError
 from benchmark.core.metrics import median_scale
-from benchmark.unsupervised.scaling import (
+from benchmark.engine.scaling import (
     pose_scale,
     pose_windows,
     scale_free_depth,

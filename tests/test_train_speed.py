@@ -25,7 +25,8 @@ from benchmark.core.data import (
     PairDataset,
     load_scenes,
 )
-from benchmark.supervised.train import TrainStep, make_optimizer
+from benchmark.engine.pair_step import TrainStep
+from benchmark.engine.train import make_optimizer
 
 
 @pytest.fixture(scope="module")

@@ -262,7 +262,7 @@ def test_pretrained_depthnet_initialises_the_depth_half():
     it into depthnet-unsup's DepthNet and leaves its PoseNet as initialised; a depthnet-unsup
     checkpoint initialises the whole network."""
     from benchmark.core.checkpoint import load_weights
-    from benchmark.supervised.train import pretrained_part
+    from benchmark.engine.train import pretrained_part
 
     torch.manual_seed(0)
     supervised = registry.build_model("depthnet-tiny")

@@ -21,6 +21,9 @@ import click  # noqa: E402 - after the check, which must run before torch is imp
 
 from stillbox_gen.formats import disk_full_message, is_disk_full  # noqa: E402
 
+# the chapters' training steps, registered in benchmark.engine.steps when imported (the depth and
+# flow steps are the engine's own: engine.pair_step)
+from ..unsupervised import training as _video_step  # noqa: E402, F401
 from . import export, flight, supervised, unsupervised, video  # noqa: E402
 
 #: how to go on after a full disk: every file is written whole (temporary name, then renamed)

@@ -42,7 +42,7 @@ def export_cmd(ckpt: Path, fmt: str, out: Path) -> None:
     The file records the input size, the normalisation, the nominal displacement and the depth
     range; `infer --ckpt model.onnx` runs an exported ONNX file.
     """
-    from ..video.export import export
+    from ..engine.export import export
 
     missing = [m for m in NEEDS[fmt] if importlib.util.find_spec(m) is None]
     if missing:

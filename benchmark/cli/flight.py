@@ -73,7 +73,7 @@ def _constant_depth(value: float | None, data: Path) -> tuple[float, str]:
     if value is not None:  # within limits.LIMITS
         return value, "given with --constant-depth"
     from ..core.data import load_scenes
-    from ..supervised.runner import median_depth
+    from ..engine.runner import median_depth
 
     try:
         depth, frames = median_depth(load_scenes(dataset_dir(data), "train"))

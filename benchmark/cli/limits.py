@@ -26,8 +26,8 @@ from stillbox_gen.conventions import MAX_DEPTH
 from stillbox_gen.errors import ConfigError
 
 from ..core.config import MAX_SEED
-from ..video.infer import MAX_MAX_SHIFT, MAX_RES
-from ..video.multishift import BETA_MAX, BETA_MIN, MAX_SHIFTS
+from ..core.multishift import BETA_MAX, BETA_MIN, MAX_SHIFTS
+from ..engine.footage_job import MAX_MAX_SHIFT, MAX_RES
 
 
 @dataclass(frozen=True)
@@ -96,7 +96,7 @@ LIMITS: dict[str, Bound] = {
     "--log-every": Bound(1, STEPS, "steps"),
     "--batch-size": Bound(1, BATCH, "samples"),  # eval: pairs per forward pass
     # any finite rate: one that diverges stops the training in one line naming --lr (the
-    # non-finite guard of supervised.train, tested with --lr 1e300)
+    # non-finite guard of engine.train, tested with --lr 1e300)
     "--lr": Bound(0.0, sys.float_info.max, above=True),
     "--smooth-weight": Bound(0.0, 1000.0),  # λ; the toy study's grid ends at 100
     "--shift": Bound(1, FRAMES - 1, "frames"),  # below the frames of a scene

@@ -121,7 +121,7 @@ def _gt_scaled(m: dict) -> str:
 def _run_one(model: str, data: Path, out: Path, settings: dict) -> dict | None:
     """runner.run_method with TrainConfig ``settings`` from the command line (training_settings;
     those a command lacks take TrainConfig's defaults); ValueError -> UserError."""
-    from ..supervised.runner import run_method
+    from ..engine.runner import run_method
 
     try:
         return run_method(model, data, out, **settings)
@@ -221,7 +221,7 @@ def eval_cmd(
             raise UserError(
                 f"--out: '{out}' is inside {flag} '{folder}'; write the report elsewhere"
             )
-    from ..supervised import runner
+    from ..engine import runner
 
     # checks the method and the data before anything is written to --out (its lock aside)
     with locked_out(out):
@@ -271,7 +271,7 @@ def report(runs: tuple[Path, ...], out: Path) -> None:
 def _comparison(runs: list[Path], out: Path) -> str:
     """report.write_comparison, shared by report and compare: an unreadable summary.json or
     pixels.npz, or an --out not made, is one line (UserError), never a traceback."""
-    from ..supervised.report import write_comparison
+    from ..engine.report import write_comparison
 
     try:
         return write_comparison(runs, out)

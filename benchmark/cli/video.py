@@ -10,7 +10,7 @@ import click
 from stillbox_gen.arguments import check_out_folder
 from stillbox_gen.conventions import MAX_DEPTH
 
-from ..video.multishift import BETA_MEAN, EMA_LAMBDA, MULTISHIFT_MAX_SHIFT
+from ..core.multishift import BETA_MEAN, EMA_LAMBDA, MULTISHIFT_MAX_SHIFT
 from .limits import FLOAT, INT, INTS, RESOLUTION
 from .options import (
     DEVICE_OPTION,
@@ -129,7 +129,8 @@ def infer(input_: Path, res: tuple[int, int] | None, **o) -> None:
     The depth of frame t comes from pairs (frame t - shift, frame t), shifts chosen from the
     depth of the previous frames (--shifts N: N pairs fused per frame); frame 0 gets none.
     """
-    from ..video.infer import InferOptions, describe, prepare
+    from ..engine.footage_job import InferOptions, prepare
+    from ..video.infer import describe
     from ..video.infer import run as run_inference
 
     opts = InferOptions(input=input_, res=res, **o)

@@ -7,7 +7,7 @@ followed by ReLU, then seven transposed-conv stages with skip connections; dispa
 Disparity is ``α·sigmoid(x) + β`` (:data:`ALPHA`, :data:`BETA`), so depth ``1/disparity`` lies in
 ``[1/(α + β), 1/β]``, in no metric unit: the photometric loss fixes depth only up to a scale
 shared with PoseNet's translations, and the scale is found when it is scored (GT median or
-PoseNet's displacement: benchmark.unsupervised.scaling). No batch normalisation. Sizes that are
+PoseNet's displacement: benchmark.engine.scaling). No batch normalisation. Sizes that are
 not multiples of 128 work: the decoder crops each upsampled map to its skip's size.
 
 :class:`SfmLearnerNet`: DispNet + core.posenet.PoseNet with DepthPoseNet's call contract: called on

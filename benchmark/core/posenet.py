@@ -29,6 +29,10 @@ from .models import DepthNet
 #: PoseNet's channels per stage at width 1 (the SFMLearner PoseNet's)
 POSE_CHANNELS = (16, 32, 64, 128, 256, 256, 256)
 POSE_KERNELS = (7, 5, 3, 3, 3, 3, 3)
+#: ε of eq. 5.2 (the thesis gives no value; the author's training code uses 1e-5), in PoseNet's
+#: (arbitrary) translation unit: translations are divided by ε + their norm (normalised in
+#: training, benchmark.unsupervised.training; the "P" scale, benchmark.engine.scaling)
+EPSILON = 1e-5
 #: PoseNet's outputs are multiplied by this (the author's code: 0.1): small poses at first
 POSE_SCALE = 0.1
 #: DepthPoseNet's DepthNet starts at this depth everywhere (metres at the nominal displacement;

@@ -115,7 +115,7 @@ class Kind:
 
     @property
     def trains(self) -> bool:
-        """A network, trained by train.Trainer and saved in checkpoints."""
+        """A network, trained by engine.train.Trainer and saved in checkpoints."""
         return self.target is not None
 
 

@@ -68,6 +68,8 @@ PREDICTIONS_DIR = "predictions"
 #: figures of a run, ``plots/<name>.png``
 PLOTS = ("error_vs_depth", "error_vs_foe_distance", "error_vs_estimate", "samples")
 PLOTS += ("learning_curve",)
+#: the tables of a results folder (eval-multishift, eval-sequences)
+RESULTS_CSV, RESULTS_MD, RESULTS_JSON = "results.csv", "results.md", "results.json"
 COMPARISON = "comparison"  # compare --out DIR writes DIR/comparison.{md,csv} and the figure
 
 

@@ -8,7 +8,7 @@ into depth with the pair's known translation (benchmark.core.flow.depth_from_flo
 [0.1, 100] m, every pixel kept, the FOE's neighbourhood included) and its end-point error (EPE)
 against the exact flow is reported too. A depth known up to a scale (Scoring.SCALE_FREE:
 ``sfmlearner``) is scaled by PoseNet's displacement ("P", its metrics) and by the ground truth's
-median ("GT", its metrics prefixed ``gt_``): benchmark.unsupervised.scaling. ``oracle-flow``
+median ("GT", its metrics prefixed ``gt_``): benchmark.engine.scaling. ``oracle-flow``
 feeds the exact flow to the same geometry; ``constant`` predicts one depth everywhere. Metrics:
 benchmark.core.metrics (per image at full resolution; then equal-weight mean over images), plus
 the original DepthNet "depth error" at 1/4 resolution (for methods without a 1/4-resolution
@@ -30,6 +30,7 @@ from ..core import flow, geometry, metrics, runfolder
 from ..core.contract import depth_output
 from ..core.registry import DEPTH, Kind, Scoring
 from .predictions import PredictionFiles
+from .scaling import scale_free_depth
 
 
 @dataclass
@@ -67,8 +68,6 @@ def predict(
     out: dict[str, torch.Tensor] = {}
     scoring = method.kind.scored_as
     if scoring is Scoring.SCALE_FREE:
-        from ..unsupervised.scaling import scale_free_depth
-
         return scale_free_depth(method.model, batch, store, device)
     if scoring is Scoring.DEPTH:
         scale = batch["translation"].norm(dim=1).to(device) / method.nominal_displacement

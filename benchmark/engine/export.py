@@ -34,7 +34,7 @@ from ..core.contract import depth_output
 from ..core.data import NORM_MEAN, NORM_STD
 from ..core.errors import FieldError
 from ..core.metrics import upsample_to
-from .multishift import DepthScale
+from ..core.multishift import DepthScale
 from .network import depth_network
 
 FORMATS = {"onnx": ".onnx", "torchscript": ".pt", "safetensors": ".safetensors"}

@@ -1,5 +1,5 @@
 """A trained depth network ready for inference on frames: the checkpoint's network, how its
-output becomes metres (:class:`benchmark.video.multishift.DepthScale`) and its training camera."""
+output becomes metres (:class:`benchmark.core.multishift.DepthScale`) and its training camera."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from ..core import registry
 from ..core.checkpoint import load_checkpoint, load_weights, source_error
 from ..core.data import DataError, camera_of
 from ..core.errors import Ref
-from .multishift import DepthScale
+from ..core.multishift import DepthScale
 
 
 def _training_camera(ck: dict, field: str | None, path: str | Path) -> dict:
@@ -39,7 +39,7 @@ def depth_network(
     """A depth network ready for inference: ``(model, scale, info)``.
 
     ``model``: the checkpoint's network in eval mode on the CPU; ``scale``:
-    :class:`benchmark.video.multishift.DepthScale` with ``theta_max`` = the upper bound of the
+    :class:`benchmark.core.multishift.DepthScale` with ``theta_max`` = the upper bound of the
     training depth range (m; MAX_DEPTH unless the checkpoint has a ``depth_range``) and ``d0`` = its
     nominal displacement (m); ``info``: the training camera (``width``, ``height`` in pixels,
     ``fov_deg`` horizontal degrees; from the checkpoint's ``camera``, else from its training

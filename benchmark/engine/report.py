@@ -66,7 +66,7 @@ SCALE_RULES = {
     Scoring.SCALE_FREE: "depth up to a scale: P (the metrics) = prediction × |pair translation| "
     "/ |PoseNet's translation between the pair's frames| (no ground truth); GT (the metrics "
     "prefixed gt_) = prediction × median(ground truth) / median(prediction) per image "
-    "(benchmark.unsupervised.scaling)",
+    "(benchmark.engine.scaling)",
     Scoring.GIVEN: "the prediction files' depth (metres), as given: no scaling",
 }
 #: what summary.json's "scale" adds when eval ran with --median-scaling

@@ -39,7 +39,8 @@ from ..core.errors import FieldError
 from . import report
 from .evaluate import EvalResult, Method, evaluate
 from .predictions import PredictionFiles
-from .train import Trainer, environment, resumed_settings
+from .resume import resumed_settings
+from .train import Trainer, environment
 
 MEDIAN_FRAMES = 2000  # at most this many training frames (evenly spread) for the constant
 PREDICTIONS_NAME = "predictions"  # summary.json's model of eval --predictions
@@ -234,7 +235,7 @@ def score_predictions(
     median_scaling: bool = False,
     progress: bool = True,
 ) -> dict:
-    """Score another method's depth files (supervised.predictions' layout) on the pairs
+    """Score another method's depth files (engine.predictions' layout) on the pairs
     (i, i + NOMINAL_SHIFT) of a split, as a registered network is scored, and write the same
     report into ``out``. Every file is checked before ``out`` is created."""
     if batch_size < 1:
@@ -376,7 +377,7 @@ def train_and_score(cfg: TrainConfig) -> dict | None:
 
 def train_config(model: str, data: Path, out: Path, **overrides) -> TrainConfig:
     """The model's registry recipe (resuming: the settings ``out``'s last checkpoint was trained
-    with, train.RESUMED_FIELDS and config.KEPT_ON_RESUME), then ``overrides`` (None values
+    with, resume.RESUMED_FIELDS and config.KEPT_ON_RESUME), then ``overrides`` (None values
     ignored)."""
     recipe = dataclasses.asdict(registry.MODELS[model].recipe)
     cfg = TrainConfig(model=model, data=str(data), out=str(out), **recipe)

@@ -27,6 +27,7 @@ import torch.nn.functional as F
 from ..core import metrics
 from ..core.data import NORM_MEAN, NORM_STD, FrameStore
 from ..core.metrics import median_scale
+from ..core.posenet import EPSILON
 
 
 def window(i2: int, frames: int, length: int) -> int:
@@ -59,8 +60,6 @@ def pose_scale(poses: torch.Tensor, where: torch.Tensor, translation: torch.Tens
     """The "P" scale ``(B,)``: measured ``‖translation‖`` (metres, ``(B, 3)``) over
     ``ε + ‖τ_i1 − τ_i2‖``, ``poses`` ``(B, N, dof)`` PoseNet's (translation first), ``where``
     ``(B, 2)``: the positions of i1, i2 in the window."""
-    from .training import EPSILON
-
     rows = torch.arange(len(poses), device=poses.device)
     moved = poses[rows, where[:, 0], :3] - poses[rows, where[:, 1], :3]
     return translation.norm(dim=1) / (EPSILON + moved.norm(dim=1))

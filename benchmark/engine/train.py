@@ -1,9 +1,11 @@
-"""Supervised training of a registered network (thesis 3.6's recipe), resumable exactly.
+"""Training of a registered network, resumable exactly: the one loop every trained method uses.
 
-Depth networks learn the rescaled depth of the second frame with the multi-scale L1 loss; flow
-networks learn the exact flow of the pair (data.PairDataset ``target="flow"``) with the
-multi-scale end-point error, times ``loss_scale`` (1/20: the public FlowNetS code's loss on
-flow / 20), and keep the checkpoint with the best validation EPE instead of the best MAE.
+The kind of method chooses its training set and step through the table of engine.steps (pairs
+with ground truth: engine.pair_step; frame sequences without it: benchmark.unsupervised.training);
+the loop, the optimiser (the recipe's SGD or Adam), the learning-rate milestones, validation
+(engine.evaluate, on fixed pairs of the val split), checkpoints and resume are the same for all.
+Flow networks keep the checkpoint with the best validation EPE instead of the best MAE
+(the kind's ``best_by``).
 
 A training writes ``config.json``, ``environment.json``, ``steps.csv`` (loss every
 ``log_every`` steps), ``metrics.csv`` (one row per validation), ``tb/`` (TensorBoard) and
@@ -25,14 +27,13 @@ from pathlib import Path
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from tqdm import tqdm
 
 from stillbox_gen.conventions import MAX_DEPTH
 
 from ..core import registry, runfolder
 from ..core.checkpoint import first_line, load_checkpoint, load_weights
-from ..core.config import TrainConfig, check_settings, flag_of
+from ..core.config import TrainConfig, check_settings
 from ..core.data import (
     EpochBatches,
     EpochSampler,
@@ -44,10 +45,12 @@ from ..core.data import (
     nominal_displacement,
 )
 from ..core.device import resolve_device
-from ..core.errors import FieldError, Ref
+from ..core.errors import FieldError
 from ..core.posenet import DepthPoseNet
 from ..core.stopping import stop_requests
-from . import evaluate
+from . import evaluate, pair_step  # noqa: F401 - pair_step registers the depth and flow steps
+from .resume import RESUME_KEYS, check_resumed_settings
+from .steps import step_maker
 
 
 def environment(device: torch.device) -> dict:
@@ -65,42 +68,6 @@ def environment(device: torch.device) -> dict:
         "cpu_count": os.cpu_count(),
         "world_size": int(os.environ.get("WORLD_SIZE", "1")),
     }
-
-
-def multiscale_l1(outputs: list[torch.Tensor], target: torch.Tensor, weights) -> torch.Tensor:
-    """Σ_s γ_s · mean|out_s − area_downsample(target)| (outputs finest first, (B,1,h,w))."""
-    loss = target.new_zeros(())
-    t = target.unsqueeze(1)
-    for out, w in zip(outputs, weights, strict=True):
-        loss = loss + w * (out - F.adaptive_avg_pool2d(t, out.shape[-2:])).abs().mean()
-    return loss
-
-
-def multiscale_epe(outputs: list[torch.Tensor], target: torch.Tensor, weights) -> torch.Tensor:
-    """Σ_s γ_s · mean‖out_s − area_downsample(target)‖₂ for (B, 2, H, W) flow targets.
-
-    NaN target pixels are left out: each scale's target is the mean of the valid pixels under
-    each output pixel, and output pixels covering no valid pixel are ignored. Flow values are
-    not rescaled with the resolution (all scales in input-resolution pixels).
-    """
-    valid = torch.isfinite(target).all(1, keepdim=True).to(target.dtype)
-    filled = torch.nan_to_num(target) * valid
-    loss = target.new_zeros(())
-    for out, w in zip(outputs, weights, strict=True):
-        size = out.shape[-2:]
-        share = F.adaptive_avg_pool2d(valid, size)
-        t = F.adaptive_avg_pool2d(filled, size) / share.clamp_min(1e-12)
-        keep = (share > 0)[:, 0]
-        epe = (out - t).norm(dim=1)
-        loss = loss + w * epe[keep].sum() / keep.sum().clamp_min(1)
-    return loss
-
-
-def multiscale_loss(outputs: list[torch.Tensor], target: torch.Tensor, weights) -> torch.Tensor:
-    """multiscale_l1 for (B, H, W) depth targets, multiscale_epe for (B, 2, H, W) flow."""
-    if target.ndim == 4:
-        return multiscale_epe(outputs, target, weights)
-    return multiscale_l1(outputs, target, weights)
 
 
 def make_optimizer(params, cfg: TrainConfig, fused: bool = True) -> torch.optim.Optimizer:
@@ -134,90 +101,6 @@ def amp_dtype(cfg: TrainConfig, device: torch.device) -> torch.dtype | None:
     if on is None:
         on = device.type == "cuda" and torch.cuda.is_bf16_supported()
     return torch.bfloat16 if on else None
-
-
-class TrainStep:
-    """One optimiser step on a batch: forward, multi-scale loss (× ``loss_scale``), backward,
-    optimiser step; returns the loss (a 0-d tensor). ``channels_last``: inputs are handed to
-    the network in channels-last memory format (the network should be converted too)."""
-
-    def __init__(
-        self,
-        net: torch.nn.Module,
-        opt: torch.optim.Optimizer,
-        device: torch.device,
-        loss_weights,
-        loss_scale: float = 1.0,
-        channels_last: bool = False,
-        autocast: torch.dtype | None = None,
-    ):
-        self.net, self.opt, self.device = net, opt, device
-        self.loss_weights, self.loss_scale = loss_weights, loss_scale
-        self.memory_format = torch.channels_last if channels_last else torch.contiguous_format
-        self.autocast = autocast
-
-    def __call__(self, batch: dict) -> torch.Tensor:
-        x = batch["input"].to(self.device, non_blocking=True, memory_format=self.memory_format)
-        y = batch["target"].to(self.device, non_blocking=True)
-        if self.autocast is None:
-            outputs = self.net(x)
-        else:
-            with torch.autocast(self.device.type, self.autocast):
-                outputs = self.net(x)
-        loss = multiscale_loss([o.float() for o in outputs], y, self.loss_weights)
-        loss = loss * self.loss_scale
-        self.opt.zero_grad(set_to_none=True)
-        loss.backward()
-        self.opt.step()
-        return loss
-
-
-RESUME_KEYS = ("optimizer", "scheduler", "state")
-#: TrainConfig fields a resumed run keeps from its checkpoint's config (those without a flag are
-#: set by the recipe only). A change would not be applied (optimiser, scheduler and sampling
-#: position come from the checkpoint) or would make the run differ from the one config.json
-#: describes, so it is refused; --max-steps, --device, --threads and the logging and speed
-#: options may change (they are applied and recorded).
-RESUMED_FIELDS = (
-    *("epochs", "epoch_size", "batch_size", "lr", "shift", "depth_range", "seed", "pretrained"),
-    *("optimizer", "momentum", "dampening", "beta2", "weight_decay"),
-    *("milestones", "gamma", "loss_weights", "loss_scale"),
-    *("sequence_length", "occlusion", "smooth_weight", "smooth_kappa", "pose"),
-)
-
-
-def _plain(value):
-    """A config value comparable across checkpoints (lists and tuples alike)."""
-    return tuple(value) if isinstance(value, (list, tuple)) else value
-
-
-def resumed_settings(ck: dict) -> dict:
-    """The RESUMED_FIELDS of a checkpoint's recorded config (those it has)."""
-    config = ck.get("config") if isinstance(ck.get("config"), dict) else {}
-    return {k: _plain(config[k]) for k in RESUMED_FIELDS if k in config}
-
-
-def check_resumed_settings(cfg: TrainConfig, ck: dict, where: str) -> None:
-    """ValueError naming the flag when ``cfg`` changes a setting the checkpoint ``ck`` (file
-    ``where``) was trained with (RESUMED_FIELDS)."""
-    for field, then in resumed_settings(ck).items():
-        now = _plain(getattr(cfg, field))
-        if now == then:
-            continue
-        if flag_of(field) is None:
-            raise FieldError(
-                "resume",
-                f"trained with {field} {then}, this version's recipe has {now}",
-                where=f" {where}",
-            )
-        shown = [
-            ",".join(f"{v:g}" for v in x) if field == "depth_range" else x for x in (then, now)
-        ]
-        raise FieldError(
-            field,
-            f"the run was trained with {shown[0]}, not {shown[1]}; a resumed run keeps its "
-            "settings (leave ", Ref(field), " out, or start a new ", Ref("out"), ")",
-        )  # fmt: skip
 
 
 #: validation metrics of a scale-free depth (sfmlearner) with the ground truth's median scale
@@ -306,15 +189,6 @@ class Trainer:
         if cfg.compile:
             self.net = torch.compile(self.net)
         self.opt = make_optimizer(self.model.parameters(), cfg)
-        self.train_step = TrainStep(
-            self.net,
-            self.opt,
-            self.device,
-            cfg.loss_weights,
-            cfg.loss_scale,
-            cfg.channels_last,
-            amp_dtype(cfg, self.device),
-        )
         miles = sorted({max(1, round(m * cfg.epochs)) for m in cfg.milestones})
         self.sched = torch.optim.lr_scheduler.MultiStepLR(self.opt, miles, cfg.gamma)
         self.state = {"epoch": 0, "step_in_epoch": 0, "global_step": 0, "best": math.inf}
@@ -352,18 +226,11 @@ class Trainer:
             )
         self.camera = camera_of(Path(cfg.data))
         self.nominal_displacement = nominal_displacement(train_scenes, cfg.shift)
-        if self.kind.target is registry.Target.VIDEO:  # no depth: photometric loss (chapter 5)
-            from ..unsupervised.training import video_training
-
-            self.train_set, self.train_step = video_training(
-                cfg, self.net, self.opt, self.device, self.train_store,
-                self.nominal_displacement, amp_dtype(cfg, self.device),
-            )  # fmt: skip
-        else:
-            self.train_set = PairDataset(
-                self.train_store, "train", cfg.shift, cfg.seed, self.kind.target.value,
-                cfg.depth_range,
-            )  # fmt: skip
+        make = step_maker(self.kind.target)  # the kind's training set and step (engine.steps)
+        self.train_set, self.train_step = make(
+            cfg, self.net, self.opt, self.device, self.train_store, self.nominal_displacement,
+            amp_dtype(cfg, self.device),
+        )  # fmt: skip
         self.val_set = PairDataset(self.val_store, "eval", cfg.shift)
         self.per_rank_batch = max(1, cfg.batch_size // self.world)
         self.sampler = EpochSampler(len(self.train_set), cfg.seed, self.rank, self.world)

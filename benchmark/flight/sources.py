@@ -24,11 +24,11 @@ import torch
 from ..core import metrics, registry
 from ..core.checkpoint import load_checkpoint, load_weights, source_error
 from ..core.data import normalise
-from ..supervised.evaluate import Method
-from ..supervised.evaluate import predict as predict_depth
-from ..video.infer import frame_depth, network_outputs
-from ..video.multishift import EMA_LAMBDA, ShiftPlanner, closest_shift, displacements
-from ..video.network import depth_network
+from ..core.multishift import EMA_LAMBDA, ShiftPlanner, closest_shift, displacements
+from ..engine.evaluate import Method
+from ..engine.evaluate import predict as predict_depth
+from ..engine.frame_depth import frame_depth, network_outputs
+from ..engine.network import depth_network
 from .obstacles import SensingConfig
 from .simulate import DepthSource
 from .summary import ERROR_KEYS
@@ -48,10 +48,10 @@ def unseen(shape: tuple[int, ...]) -> np.ndarray:
 
 class NetworkDepth:
     """A depth network's checkpoint (``kind`` depth in the registry) as ``infer`` runs it: per
-    frame the :class:`~benchmark.video.multishift.ShiftPlanner`'s ``shifts`` pairs
+    frame the :class:`~benchmark.core.multishift.ShiftPlanner`'s ``shifts`` pairs
     (frame t - shift, frame t), the displacements |p_t - p_{t-shift}| (m) from the poses, the
-    network's outputs scaled and fused (infer.frame_depth, infer.network_outputs). Shifts reach
-    back at most as far as the frames the loop keeps (simulate.HISTORY - 1)."""
+    network's outputs scaled and fused (benchmark.engine.frame_depth). Shifts reach back at most
+    as far as the frames the loop keeps (simulate.HISTORY - 1)."""
 
     def __init__(
         self,
@@ -81,7 +81,7 @@ class NetworkDepth:
 
 class FlowDepth:
     """A flow network's checkpoint (``kind`` flow: FlowNetS) turned into depth exactly as
-    ``compare`` scores ``flownets-flow`` (supervised.evaluate.predict: the flow upsampled to the
+    ``compare`` scores ``flownets-flow`` (engine.evaluate.predict: the flow upsampled to the
     frame, then core.flow.depth_from_flow with the pair's known translation, clamped to
     [MIN_DEPTH, MAX_DEPTH]). The pair is (frame t - shift, frame t), the shift whose displacement
     is closest to the checkpoint's nominal displacement; the translation is measured from the

@@ -1,3 +1,3 @@
-"""Thesis chapter 3: supervised training (train, train_speed), scoring (evaluate), one run per
-method (runner), the comparison report and its figures (report, plots), and the size and speed
-table (speed)."""
+"""Thesis chapter 3: the size and speed table (speed), samples/s of training steps (train_speed),
+the author's DepthNet code run beside ours (reference, reference_launcher) and the test MAE
+against training samples (scaling). Supervised training, scoring and runs are benchmark.engine's."""

@@ -27,8 +27,9 @@ from ..core.config import TrainConfig
 from ..core.data import EpochSampler, FrameStore, PairDataset, load_scenes
 from ..core.errors import FieldError
 from ..core.registry import Target
+from ..engine.pair_step import TrainStep
+from ..engine.train import make_optimizer
 from .speed import TRAIN_BATCHES, _sync, csv_name
-from .train import TrainStep, make_optimizer
 
 DEFAULT_SIZE = 64  # square input size of random batches, pixels (a dataset has its own)
 

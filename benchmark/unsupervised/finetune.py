@@ -2,9 +2,9 @@
 stabilised footage (thesis §5.4.5), with the photometric training of chapter 5.
 
 The footage, its motion and the camera geometry are handled as ``infer`` handles them
-(benchmark.video.infer.prepare: the same options, checks and crop), its moving stretches become
-frame sequences (benchmark.unsupervised.footage_sequences, SequenceDataset), and the network is
-the checkpoint's depth network with a fresh PoseNet (core.posenet.DepthPoseNet; a
+(benchmark.engine.footage_job.prepare: the same options, checks and crop), its moving stretches
+become frame sequences (benchmark.unsupervised.footage_sequences, SequenceDataset), and the
+network is the checkpoint's depth network with a fresh PoseNet (core.posenet.DepthPoseNet; a
 ``depthnet-unsup`` checkpoint keeps its own PoseNet), trained by PhotometricStep (eq. 5.5) with
 d0 = the checkpoint's nominal displacement in eq. 5.2, so the network keeps answering in its
 supervised convention.
@@ -46,8 +46,8 @@ from ..core.errors import FieldError, Ref
 from ..core.posenet import DepthPoseNet
 from ..core.registry import UNSUPERVISED_RECIPE
 from ..core.stopping import stop_requests
-from ..supervised.train import NonFiniteLoss, environment, make_optimizer
-from ..video.infer import InferOptions, prepare
+from ..engine.footage_job import InferOptions, prepare
+from ..engine.train import NonFiniteLoss, environment, make_optimizer
 from .footage_sequences import describe_stretches, footage_store, frame_stride
 from .sequences import SequenceDataset
 from .training import PhotometricStep, smooth_settings

@@ -2,7 +2,7 @@
 would feed the network, as a store SequenceDataset reads (benchmark.unsupervised.sequences).
 
 Frames are read, centre-cropped to the training field of view and resized to the network's input
-exactly as ``infer`` does (benchmark.video.footage: ``prepare_frame`` with the Job's crop), and
+exactly as ``infer`` does (benchmark.core.footage: ``prepare_frame`` with the Job's crop), and
 kept in memory. Every ``stride``-th frame is kept (:func:`frame_stride`: consecutive kept frames
 are about as far apart as consecutive frames of the training set), and the kept frames are cut
 where the camera does not move between two of them: each moving stretch of at least a sequence's
@@ -16,9 +16,9 @@ from __future__ import annotations
 import numpy as np
 from tqdm import tqdm
 
+from ..core import footage
 from ..core.data import CACHE_LIMIT_BYTES
 from ..core.errors import FieldError
-from ..video import footage
 
 
 def frame_stride(positions: np.ndarray, d0: float, shift: int) -> int:

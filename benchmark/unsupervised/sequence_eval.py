@@ -23,7 +23,7 @@ to 100 m, per image, then the mean over images).
   about 13 m on the tests' rotating scene; "P (fixed pair)": zero):
   tests/test_sequence_protocol.py.
 - SFMLearner (``sfmlearner*``) reads t alone; its scale-free depth is put in metres by
-  benchmark.unsupervised.scaling: "P", the measured displacement over PoseNet's between the
+  benchmark.engine.scaling: "P", the measured displacement over PoseNet's between the
   window's first and last frames (the longest baseline of the window: our choice, the thesis
   does not say which pair), and "GT", the per-image median ratio.
 - The constant plane (Table 5.3): every pixel at the median of the image's ground truth ("GT").
@@ -56,8 +56,8 @@ from ..core import metrics, registry
 from ..core.checkpoint import load_checkpoint, load_weights, source_error
 from ..core.data import NORM_MEAN, NORM_STD
 from ..core.errors import FieldError
+from ..engine.scaling import pose_scale
 from .rotation import Stabiliser, target_rotations
-from .scaling import pose_scale
 from .training import compensate
 
 #: frames of a test window: PoseNet's input length (§5.4.3), the recipe's sequence length

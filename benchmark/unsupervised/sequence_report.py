@@ -14,7 +14,7 @@ import torch
 from stillbox_gen.formats import atomic_write_text
 
 from ..core import metrics, registry, runfolder
-from ..video.multishift_eval import RESULTS_CSV, RESULTS_JSON, RESULTS_MD
+from ..core.runfolder import RESULTS_CSV, RESULTS_JSON, RESULTS_MD
 from .sequence_eval import (
     PAIR_TARGET_DEPTH,
     POSE_COSINE,

@@ -4,7 +4,7 @@
 step in turn so that all see the same load on a shared machine (median of the timed steps,
 after one untimed warm-up):
 
-- ``supervised``: DepthNet's supervised step (benchmark.supervised.train.TrainStep, training
+- ``supervised``: DepthNet's supervised step (benchmark.engine.pair_step.TrainStep, training
   defaults) on a random pair and target;
 - ``unsupervised``: ``depthnet-unsup``'s step (PhotometricStep: DepthNet + PoseNet, eq. 5.5 over
   every reference and scale), as trained (``levers`` on);
@@ -30,7 +30,8 @@ from pathlib import Path
 import torch
 
 from ..core import registry
-from ..supervised.train import TrainStep, make_optimizer
+from ..engine.pair_step import TrainStep
+from ..engine.train import make_optimizer
 from .training import PhotometricStep, smooth_settings
 
 UNSUPERVISED = "depthnet-unsup"

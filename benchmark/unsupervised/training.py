@@ -39,6 +39,9 @@ import torch
 import torch.nn.functional as F
 
 from ..core.metrics import MIN_DEPTH
+from ..core.posenet import EPSILON
+from ..core.registry import Target
+from ..engine.steps import training_step
 from .reprojection import (
     SSIM_WEIGHT,
     gradient_diffusion_loss,
@@ -52,9 +55,6 @@ from .reprojection import (
 from .rotation import ROTATING_MODES, Stabiliser, target_rotations
 from .toy import thesis_value
 
-#: ε of eq. 5.2 (the thesis gives no value; the author's training code uses 1e-5), in PoseNet's
-#: (arbitrary) translation unit
-EPSILON = 1e-5
 #: The smooth loss of §5.2.4 (Table 4.1's name)
 SMOOTH_LOSS = "gradient_diffusion"
 #: Table 4.1's λ is multiplied by this for eq. 5.5 (30 -> 0.003 without the occlusion module).
@@ -279,8 +279,10 @@ class PhotometricStep:
         return self.update(batch)["loss"]
 
 
+@training_step(Target.VIDEO)
 def video_training(cfg, net, opt, device, store, d0: float, autocast=None):
-    """The training set and step of a ``depthnet-unsup*`` run (Trainer.setup): a
+    """The training set and step of a method learning from video (Target.VIDEO, registered in
+    benchmark.engine.steps: ``depthnet-unsup*``, ``sfmlearner*``; Trainer.setup): a
     SequenceDataset of ``cfg.sequence_length`` frames over ``store`` and a PhotometricStep
     with ``d0`` metres, or without pose normalisation for a method whose depth has no scale
     (Scoring.SCALE_FREE: sfmlearner). FieldError on ``data`` when its scenes are shorter than a

@@ -2,7 +2,7 @@
 
 The thesis' Fig. 6.6 analogue. Each test sequence (e.g. ``stillbox-gen --frames 30
 --rotation-noise 0.0331``: the orientation noise of thesis 6.4) is run frame by frame as
-``stillbox-bench infer`` runs a video (benchmark.video.infer.frame_depth), once per depth
+``stillbox-bench infer`` runs a video (benchmark.engine.frame_depth), once per depth
 checkpoint and strategy:
 
 - ``nominal``: always the shift whose displacement is closest to the network's d0 (DepthNet's
@@ -36,8 +36,7 @@ from stillbox_gen.dataset import Dataset, Scene
 
 from ..core import metrics, runfolder
 from ..core.errors import FieldError, Ref
-from .infer import frame_depth, network_outputs
-from .multishift import (
+from ..core.multishift import (
     BETA_MAX,
     BETA_MEAN,
     BETA_MIN,
@@ -48,12 +47,13 @@ from .multishift import (
     closest_shift,
     displacements,
 )
-from .network import depth_network
+from ..core.runfolder import RESULTS_CSV, RESULTS_JSON, RESULTS_MD
+from ..engine.frame_depth import frame_depth, network_outputs
+from ..engine.network import depth_network
 
 BANDS = ((0.0, 10.0), (10.0, 25.0), (25.0, 50.0), (50.0, 100.0))  # ground-truth depth, metres
 SCORES = ("mae", "mre", "mle")
 DEFAULT_SHIFT_COUNTS = (1, 2, 3)
-RESULTS_CSV, RESULTS_MD, RESULTS_JSON = "results.csv", "results.md", "results.json"
 FIGURE = "mre_vs_time.png"
 
 
