@@ -135,8 +135,8 @@ def test_no_import_cycles():
 
 
 #: benchmark's groups of modules (the code map of docs/ARCHITECTURE.md): each may import
-#: benchmark.core, never the other way round
-BENCHMARK_GROUPS = ("supervised", "unsupervised", "video", "flight", "cli")
+#: benchmark.core, never the other way round (the other layers: test_import_layers.py)
+BENCHMARK_GROUPS = ("engine", "supervised", "unsupervised", "video", "flight", "cli")
 
 
 def test_benchmark_core_imports_none_of_the_other_groups():
