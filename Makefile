@@ -10,7 +10,7 @@ STAMP  := $(VENV)/.installed
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
-	$(BIN)/pip install --quiet -e '.[gen,bench,dev,ray,export]'
+	$(BIN)/pip install --quiet -e '.[gen,bench,toy,dev,ray,export]'
 	touch $(STAMP)
 
 install: $(STAMP)
@@ -36,7 +36,7 @@ BENCH_VENV := .venv-bench
 $(BENCH_VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(BENCH_VENV)
 	$(BENCH_VENV)/bin/pip install --quiet --upgrade pip
-	$(BENCH_VENV)/bin/pip install --quiet -e '.[bench,dev]'
+	$(BENCH_VENV)/bin/pip install --quiet -e '.[bench,toy,dev]'
 	touch $@
 
 test-bench-only: $(BENCH_VENV)/.installed

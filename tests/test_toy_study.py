@@ -322,6 +322,21 @@ def test_out_that_is_a_file_is_refused_and_kept(tmp_path):
     assert out.read_text() == "keep"
 
 
+def test_without_numba_the_toy_command_names_the_extra_to_install(tmp_path, monkeypatch):
+    import sys
+
+    import benchmark.unsupervised as package
+
+    # numba as if not installed: the kernels module is imported afresh and fails on it
+    monkeypatch.setitem(sys.modules, "numba", None)
+    monkeypatch.delitem(sys.modules, "benchmark.unsupervised.toy_kernels", raising=False)
+    monkeypatch.delattr(package, "toy_kernels", raising=False)
+    with pytest.raises(UserError) as e:
+        _invoke("--out", tmp_path / "out")
+    assert str(e.value) == toy.NUMBA_MISSING and "stillbox-gen[toy]" in str(e.value)
+    assert not (tmp_path / "out").exists()
+
+
 # ---------------------------------------------------------------- on rendered toy scenes
 
 

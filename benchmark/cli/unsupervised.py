@@ -226,8 +226,10 @@ def toy_cmd(
     import torch
     from tqdm import tqdm
 
-    from ..unsupervised import toy_kernels
-
+    try:
+        toy_kernels = study.kernels()
+    except ModuleNotFoundError as e:
+        raise UserError(str(e)) from None
     check_out_folder(out, error=UserError)  # the numbers' ranges: limits.LIMITS
     if jobs > 1 and threads > 1:
         raise UserError(f"--jobs: its workers run one thread each; drop --threads {threads}")

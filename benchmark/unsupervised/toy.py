@@ -371,11 +371,18 @@ ADAM_BETAS = (0.9, 0.999)
 ADAM_EPS = 1e-8
 
 
-def _kernels():  # noqa: ANN202
-    """:mod:`toy_kernels`, imported when first needed (numba adds ~0.3 s to every command's
-    start otherwise)."""
-    from . import toy_kernels
+NUMBA_MISSING = "the toy study needs numba: pip install 'stillbox-gen[toy]'"
 
+
+def kernels():  # noqa: ANN201
+    """:mod:`toy_kernels`, imported when first needed (numba adds ~0.3 s to every command's
+    start otherwise); without numba, a ModuleNotFoundError whose message names the extra."""
+    try:
+        from . import toy_kernels
+    except ModuleNotFoundError as e:
+        if e.name != "numba":
+            raise
+        raise ModuleNotFoundError(NUMBA_MISSING, name="numba") from None
     return toy_kernels
 
 
@@ -415,8 +422,8 @@ class KernelArrays:
                 back_rays.append(a[0])
                 back_offsets.append(c.reshape(3))
         n, refs = len(scenes), len(REFERENCES)
-        if scenes[0].frames.shape[1] != _kernels().CHANNELS:
-            raise ValueError(f"toy frames must have {_kernels().CHANNELS} channels (RGB)")
+        if scenes[0].frames.shape[1] != kernels().CHANNELS:
+            raise ValueError(f"toy frames must have {kernels().CHANNELS} channels (RGB)")
 
         def stack(xs: list[torch.Tensor], dtype: type = np.float32) -> np.ndarray:
             t = torch.stack(xs)
@@ -430,7 +437,7 @@ class KernelArrays:
                 [
                     np.stack(
                         [
-                            _kernels().bilinear_coefficients(_np(s.reference(i)[0]))
+                            kernels().bilinear_coefficients(_np(s.reference(i)[0]))
                             for i in range(refs)
                         ]
                     )
@@ -469,16 +476,16 @@ class _Kernels:
         refs = len(REFERENCES)
         self.occluded = np.zeros((b, refs, h, w), dtype=np.bool_)
         self.use_occ = False
-        self.work = _kernels().photometric_work(b, problem.points, refs, h, w)
+        self.work = kernels().photometric_work(b, problem.points, refs, h, w)
         self.kept = np.empty((b // problem.points, h, w, refs, problem.points), np.float32)
         self.set_occluded(None)
         if smooth is not None:
-            self.code = _kernels().SMOOTH_CODES[smooth]
+            self.code = kernels().SMOOTH_CODES[smooth]
             self.wf, self.wl = self.a.edge_weights(problem, smooth)
 
     def occlusions(self) -> None:
         a = self.a
-        _kernels().occlusions(self.depth, a.scene, a.rays, a.offsets, a.back_rays,
+        kernels().occlusions(self.depth, a.scene, a.rays, a.offsets, a.back_rays,
                                a.back_offsets, ODM_DEPTH_RATIO, ODM_DILATION, MAX_SQUARE,
                                self.occluded)  # fmt: skip
         self.set_occluded(self.occluded)
@@ -489,21 +496,21 @@ class _Kernels:
         self.use_occ = occluded is not None
         if occluded is not None and occluded is not self.occluded:
             self.occluded[:] = occluded
-        _kernels().kept_weights(self.occluded, self.problem.points, self.use_occ, self.kept)
+        kernels().kept_weights(self.occluded, self.problem.points, self.use_occ, self.kept)
 
     def photometric(self) -> np.ndarray:
         """Photometric loss ``(B,)``; its gradient in ``self.grad`` (overwritten)."""
         a = self.a
-        return _kernels().photometric(self.depth, self.problem.points, a.target, a.coef, a.rays,
+        return kernels().photometric(self.depth, self.problem.points, a.target, a.coef, a.rays,
                                        a.offsets, self.kept, self.grad, *self.work)  # fmt: skip
 
     def step(self, t: int, lr: float) -> None:
         """Adam step ``t`` (from 1) on the gradient of the photometric + smooth loss."""
         self.photometric()
         if self.smooth is not None:
-            _kernels().smooth(self.code, self.depth, self.wf, self.wl, self.a.lam,
+            kernels().smooth(self.code, self.depth, self.wf, self.wl, self.a.lam,
                                ROBUST_STEPS, ROBUST_STEP, self.grad)  # fmt: skip
-        _kernels().adam_step(self.depth, self.grad, self.m, self.v, t, lr, *ADAM_BETAS,
+        kernels().adam_step(self.depth, self.grad, self.m, self.v, t, lr, *ADAM_BETAS,
                               ADAM_EPS, MIN_DEPTH, MAX_DEPTH)  # fmt: skip
 
     def masks(self, device: torch.device) -> list[torch.Tensor]:
