@@ -31,6 +31,7 @@ from .options import (
     training_settings,
     user_error,
 )
+from .supervised import check_comparison_out
 
 BUILT_IN = ("oracle", "constant")
 THREADS_OPTION = setting_option("threads", "run")
@@ -212,6 +213,10 @@ def _check_numbers(o: dict) -> None:
         raise UserError("--shifts: only for a depth network's checkpoint (--depth PATH)")
     if o["constant_depth"] is not None and o["depth"] != "constant":
         raise UserError("--constant-depth: only with --depth constant")
+    if not is_default("data") and (o["depth"] != "constant" or o["constant_depth"] is not None):
+        raise UserError(
+            "--data: only with --depth constant (its median depth) and no --constant-depth"
+        )
 
 
 def _check_renderer(kind: str) -> None:
@@ -321,9 +326,7 @@ def fly_compare(runs: tuple[Path, ...], out: Path | None) -> None:
             raise UserError(f"RUN: {e}") from None
     out = out if out is not None else runs[0].parent / "fly-comparison"
     paths = runfolder.comparison_paths(out)
-    for path in (paths["md"], paths["csv"]):
-        if path.exists() and not path.is_file():
-            raise UserError(f"--out: '{path}' is not a file")
+    check_comparison_out(out)
     md = comparison_markdown(rows)
     try:
         runfolder.write_comparison(out, md, runfolder.csv_text(rows))

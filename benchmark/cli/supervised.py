@@ -7,7 +7,7 @@ from pathlib import Path
 
 import click
 
-from stillbox_gen.arguments import check_out_folder
+from stillbox_gen.arguments import check_out_folder, unwritable
 
 from ..core import registry
 from ..core.config import EVAL_BATCH_SIZE, default
@@ -265,7 +265,19 @@ def report(runs: tuple[Path, ...], out: Path) -> None:
     missing = [str(r) for r in runs if not has_summary(r)]
     if missing:
         raise UserError(f"RUNS: no {SUMMARY_JSON} in {', '.join(missing)}")
+    check_comparison_out(out)
     click.echo(_comparison(list(runs), out))
+
+
+def check_comparison_out(out: Path, flag: str = "--out") -> None:
+    """The files of a comparison named ``out`` (runfolder.comparison_paths: OUT.md, OUT.csv and
+    the figure) can be written, checked before any work: none of them is a folder, and their
+    folder can be made. UserError naming ``flag`` otherwise."""
+    for path in comparison_paths(out).values():
+        if path.exists() and not path.is_file():
+            raise UserError(f"{flag}: '{path}' is a folder, not a file")
+    if problem := unwritable(Path(out).parent):
+        raise UserError(f"{flag}: {problem}")
 
 
 def _comparison(runs: list[Path], out: Path) -> str:
@@ -425,6 +437,8 @@ def speed(
         return _train_speed(
             names, batches, data, baseline, compile_, time_res, device, threads, out
         )
+    if data is not None:
+        raise UserError("--data: only with --train (the sizes are timed on random inputs)")
     chosen = model_names(names or ",".join(speed_table.DEFAULT_MODELS))
     no_net = [n for n in chosen if not registry.MODELS[n].trainable]
     if no_net:
