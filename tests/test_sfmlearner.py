@@ -203,7 +203,7 @@ def test_without_pose_normalisation_the_loss_has_no_scale(sequences):
     cfg = SimpleNamespace(
         model="sfmlearner-tiny", sequence_length=5, shift=3, seed=0, smooth_weight=None,
         smooth_kappa=None, occlusion=False, loss_weights=RECIPE.loss_weights,
-        pose="translation", data="d", known_motion=None,
+        pose="translation", data="d", known_motion=None, pose_warmup=None,
     )  # fmt: skip
     store, cpu = sequences.store, torch.device("cpu")
     assert video_training(cfg, None, None, cpu, store, 0.3)[1].d0 is None

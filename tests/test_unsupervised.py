@@ -198,7 +198,7 @@ def _video_cfg(model: str, known_motion: bool | None) -> SimpleNamespace:
     return SimpleNamespace(
         model=model, sequence_length=5, shift=3, seed=0, smooth_weight=None, smooth_kappa=None,
         occlusion=False, loss_weights=WEIGHTS, pose="translation", data="d",
-        known_motion=known_motion,
+        known_motion=known_motion, pose_warmup=None,
     )  # fmt: skip
 
 
@@ -255,6 +255,38 @@ def test_run_eval_resume_and_bad_options(tiny_dataset, tmp_path):
         no = ["run", "depthnet-unsup-tiny", "--data", tiny_dataset, "--out", tmp_path / "no"]
         _one_line(bench(*no, *flags, "--quiet", check=False), word)
         assert not (tmp_path / "no").exists()
+
+
+def test_pose_warmup_trains_posenet_alone_then_both_and_resumes_into_the_right_phase(
+    tiny_dataset, tmp_path
+):
+    """run --pose-warmup 2 from a depthnet-unsup checkpoint: after 2 steps the DepthNet
+    (weights and BatchNorm statistics) is exactly the checkpoint's while PoseNet has moved;
+    resumed to 3 steps (the warm-up's count read from the resumed step), the DepthNet moves
+    too. Refused with --known-motion (no PoseNet to warm up), in one line."""
+    base = ["run", "depthnet-unsup-tiny", "--data", tiny_dataset, "--quiet", "--batch-size", 4]
+    bench(*base, "--out", tmp_path / "start", "--max-steps", 1)
+    start = tmp_path / "start" / "checkpoints" / "last.pt"
+    warm = [*base, "--pretrained", start, "--pose-warmup", 2, "--out", tmp_path / "warm"]
+    bench(*warm, "--max-steps", 2, "--ckpt-every", 1)
+
+    def weights(path, part):
+        model = torch.load(path, weights_only=True)["model"]
+        return {k: v for k, v in model.items() if k.startswith(part)}
+
+    last = tmp_path / "warm" / "checkpoints" / "last.pt"
+    before, after = weights(start, "depth."), weights(last, "depth.")
+    assert any("running_mean" in k for k in before)  # BatchNorm statistics are compared too
+    for k, v in before.items():
+        torch.testing.assert_close(after[k], v, rtol=0, atol=0, msg=k)
+    pose0, pose2 = weights(start, "pose."), weights(last, "pose.")
+    assert any(not torch.equal(pose0[k], pose2[k]) for k in pose0)
+    bench(*warm, "--resume", "--max-steps", 3)
+    moved = weights(last, "depth.")
+    assert any(not torch.equal(moved[k], before[k]) for k in before)
+    known = [*base, "--known-motion", "--pose-warmup", 2, "--out", tmp_path / "km"]
+    _one_line(bench(*known, "--max-steps", 1, check=False), "--pose-warmup")
+    assert not (tmp_path / "km").exists()
 
 
 def test_pretrained_depthnet_initialises_the_depth_half():

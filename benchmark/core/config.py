@@ -348,6 +348,19 @@ class TrainConfig:
             parse=lambda given: given or None,
         ),
     )
+    pose_warmup: int | None = setting(
+        None,
+        flag=Flag(
+            "--pose-warmup",
+            {
+                "run": "depthnet-unsup*, sfmlearner*: first steps with the DepthNet frozen (no "
+                "gradient, its BatchNorm statistics kept) and PoseNet alone learning, for a "
+                "--pretrained depth network (finetune's warm-up).  [default: 0]"
+            },
+            kind="int",
+            rule=(lambda v: v >= 0, "must be 0 or more"),
+        ),
+    )
     smooth_weight: float | None = setting(
         None,
         recipe=True,

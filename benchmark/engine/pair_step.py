@@ -91,7 +91,7 @@ class TrainStep:
 
 
 @training_step(Target.DEPTH, Target.FLOW)
-def pair_training(cfg, net, opt, device, store, d0, autocast=None):
+def pair_training(cfg, net, opt, device, store, d0, autocast=None, progress=None):
     """The training set and step of a depth or flow method (Trainer.setup): pairs ``cfg.shift``
     frames apart over ``store`` with the method's target (depth clipped to ``cfg.depth_range``,
     metres) and a TrainStep. ``d0`` is not used (depth targets are rescaled by the pairs)."""

@@ -5,9 +5,11 @@ A maker is called once by Trainer.setup, after the data are loaded, with the run
 ``cfg``, the network as trained ``net`` (maybe compiled or DDP-wrapped), its optimiser ``opt``,
 the ``device``, the training split's frames ``store`` (core.data.FrameStore), ``d0`` (metres: the
 nominal displacement the depth answers for, shift × the split's median metres per frame) and
-``autocast`` (the forward pass's dtype, None: float32). It returns the training set (indexable,
-with ``set_epoch(epoch)`` and ``batch(indices, epoch)`` as core.data.PairDataset) and the step: a
-callable that takes one batch, makes one optimiser step and returns the loss (a 0-d tensor).
+``autocast`` (the forward pass's dtype, None: float32) and ``progress``, the trainer's live
+state (``progress["global_step"]``: optimiser steps done, resumed ones included). It returns the
+training set (indexable, with ``set_epoch(epoch)`` and ``batch(indices, epoch)`` as
+core.data.PairDataset) and the step: a callable that takes one batch, makes one optimiser step
+and returns the loss (a 0-d tensor).
 
 The packages that define steps fill the table when imported: benchmark.engine.pair_step (depth
 and flow learnt from pairs with ground truth, chapter 3), benchmark.unsupervised.training (depth
@@ -38,6 +40,7 @@ class StepMaker(Protocol):
         store: Any,
         d0: float,
         autocast: torch.dtype | None,
+        progress: dict | None = None,
     ) -> tuple[Any, Step]: ...
 
 

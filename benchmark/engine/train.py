@@ -229,7 +229,7 @@ class Trainer:
         make = step_maker(self.kind.target)  # the kind's training set and step (engine.steps)
         self.train_set, self.train_step = make(
             cfg, self.net, self.opt, self.device, self.train_store, self.nominal_displacement,
-            amp_dtype(cfg, self.device),
+            amp_dtype(cfg, self.device), self.state,
         )  # fmt: skip
         self.val_set = PairDataset(self.val_store, "eval", cfg.shift)
         self.per_rank_batch = max(1, cfg.batch_size // self.world)

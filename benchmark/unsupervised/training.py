@@ -279,17 +279,38 @@ class PhotometricStep:
         return self.update(batch)["loss"]
 
 
+class PoseWarmup:
+    """``run --pose-warmup``: a PhotometricStep whose DepthNet is frozen while
+    ``progress["global_step"]`` (steps done, resumed ones included) is below ``steps``: no
+    gradient and its BatchNorm's running statistics kept (eval mode), so PoseNet alone learns
+    against a pretrained depth; from then on both learn, as without the warm-up."""
+
+    def __init__(self, step: PhotometricStep, depth: torch.nn.Module, steps: int, progress: dict):
+        self.step, self.depth, self.steps, self.progress = step, depth, steps, progress
+
+    def __getattr__(self, name: str):  # the PhotometricStep's settings (d0, pose, ...)
+        return getattr(self.step, name)
+
+    def __call__(self, batch: dict) -> torch.Tensor:
+        frozen = self.progress["global_step"] < self.steps
+        self.depth.requires_grad_(not frozen)
+        self.depth.train(not frozen)
+        return self.step(batch)
+
+
 @training_step(Target.VIDEO)
-def video_training(cfg, net, opt, device, store, d0: float, autocast=None):
+def video_training(cfg, net, opt, device, store, d0: float, autocast=None, progress=None):
     """The training set and step of a method learning from video (Target.VIDEO, registered in
     benchmark.engine.steps: ``depthnet-unsup*``, ``sfmlearner*``; Trainer.setup): a
     SequenceDataset of ``cfg.sequence_length`` frames over ``store`` and a PhotometricStep
     with ``d0`` metres, or without pose normalisation for a method whose depth has no scale
     (Scoring.SCALE_FREE: sfmlearner). FieldError on ``data`` when its scenes are shorter than a
     sequence, on ``shift`` when such a method's pairs do not fit in one (its "P" scale), on
-    ``pose`` when the mode does not fit the network or the data (rotation.check_pose)."""
+    ``pose`` when the mode does not fit the network or the data (rotation.check_pose), on
+    ``pose_warmup`` with ``known_motion`` (no PoseNet to warm up) or under DDP. With
+    ``cfg.pose_warmup`` steps, the step is a :class:`PoseWarmup` reading ``progress``."""
     from ..core import registry
-    from ..core.errors import FieldError
+    from ..core.errors import FieldError, Ref
     from .rotation import check_pose
     from .sequences import SequenceDataset
 
@@ -319,4 +340,14 @@ def video_training(cfg, net, opt, device, store, d0: float, autocast=None):
         net, opt, device, cfg.loss_weights, d0, lam, kappa, bool(cfg.occlusion), autocast,
         cfg.pose, known_translation=bool(cfg.known_motion),
     )  # fmt: skip
+    if cfg.pose_warmup:
+        if cfg.known_motion:
+            raise FieldError(
+                "pose_warmup", "has no PoseNet to warm up with ", Ref("known_motion"),
+                " (the dataset's translations replace PoseNet's)",
+            )  # fmt: skip
+        if isinstance(net, torch.nn.parallel.DistributedDataParallel):
+            raise FieldError("pose_warmup", "is for one process (a frozen DepthNet under DDP)")
+        inner = getattr(net, "_orig_mod", net)  # torch.compile's wrapper
+        step = PoseWarmup(step, inner.depth, cfg.pose_warmup, progress)
     return SequenceDataset(store, cfg.sequence_length, cfg.seed), step
