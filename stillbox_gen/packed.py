@@ -35,7 +35,7 @@ from pathlib import Path, PurePosixPath
 import numpy as np
 
 from . import formats, layout
-from .dataset import Scene, decode_flow_files
+from .dataset import Dataset, Scene, decode_flow_files
 from .errors import DatasetError
 
 PACK_FORMAT = "webdataset"
@@ -234,11 +234,22 @@ class PackedDataset:
         """The shards holding ``split``'s scenes (all when None), in shard order."""
         return [s for s in self.shards if split is None or s.split == split]
 
-    def scenes(self, split: str | None = None, verify: bool = True) -> Iterator[PackedScene]:
+    def scenes(
+        self, split: str | None = None, verify: bool = True, limit: int | None = None
+    ) -> Iterator[PackedScene]:
         """Stream the scenes of ``split`` (all when None), shard by shard; within a shard in
-        index order (the shards of a split hold its scenes in index order)."""
+        index order (the shards of a split hold its scenes in index order). ``limit``: the
+        first ``limit`` only (as :meth:`stillbox_gen.dataset.Dataset.scenes`'s; the shards
+        after the last one are not read)."""
+        if limit is not None and limit <= 0:
+            return
+        n = 0
         for shard in self.shards_of(split):
-            yield from self.read_shard(shard, verify)
+            for scene in self.read_shard(shard, verify):
+                yield scene
+                n += 1
+                if n == limit:
+                    return
 
     def verify(self, shard: Shard) -> None:
         """DatasetError naming the shard when its size or SHA-256 differs from index.json."""
@@ -332,3 +343,34 @@ class PackedDataset:
             if isinstance(e, DatasetError):
                 raise
             raise DatasetError(f"{where}: not a stillbox-gen record ({e!r})") from None
+
+
+def is_packed(root: str | os.PathLike) -> bool:
+    """True when ``root`` is (or claims to be) a packed dataset: it holds index.json. The one
+    test of folder vs pack (:func:`open_dataset`)."""
+    return (Path(root) / INDEX_JSON).exists()
+
+
+def open_dataset(root: str | os.PathLike) -> Dataset | PackedDataset:
+    """The dataset at ``root``, read-only: a :class:`PackedDataset` when it holds index.json
+    (:func:`is_packed`; its index is read and checked here), else a folder
+    (:class:`stillbox_gen.dataset.Dataset`). Both give the same scenes
+    (``list(ds.scenes(split, limit=n))``) and ``info``. DatasetError naming ``root`` when it is
+    neither a finished dataset (manifest.parquet) nor a complete pack, e.g. the shards of a
+    pack interrupted before its index.json."""
+    path = Path(root)
+    if not path.is_dir():
+        raise DatasetError(f"'{root}' is not a folder")
+    if is_packed(path):
+        return PackedDataset(path)
+    if any(_SHARD.fullmatch(p.name) for p in path.glob("shard-*.tar")):
+        raise DatasetError(
+            f"'{root}' holds shards but no {INDEX_JSON}: an interrupted pack; delete it and "
+            "pack again"
+        )
+    if not (path / layout.MANIFEST).is_file():
+        raise DatasetError(
+            f"'{root}' is not a finished stillbox-gen dataset (no {layout.MANIFEST}) nor a "
+            f"packed one (no {INDEX_JSON})"
+        )
+    return Dataset(path)

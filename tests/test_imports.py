@@ -193,8 +193,9 @@ def test_importing_every_other_module_loads_no_bpy():
 
 
 # The data contract: what of stillbox_gen the benchmark may load (itself or through what it
-# imports). The reader, the conventions, the file formats and layout, the record and the camera
-# model; never the generator's config, sampling, workers, writer or Blender.
+# imports). The readers (a folder and its pack), the conventions, the file formats and layout,
+# the record and the camera model; never the generator's config, sampling, workers, writer or
+# Blender.
 BENCHMARK_MAY_LOAD = frozenset(
     f"stillbox_gen{suffix}"
     for suffix in (
@@ -208,6 +209,7 @@ BENCHMARK_MAY_LOAD = frozenset(
         ".layout",
         ".lock",
         ".manifest",
+        ".packed",
         ".portable",
         ".record",
     )

@@ -37,15 +37,19 @@ MAKE_DEFAULT_DATA = "stillbox-gen --res 64 --scenes 3000"
 
 
 def dataset_dir(data: Path) -> Path:
-    """``data`` when it holds a finished dataset; else a UserError naming --data (and, when the
-    folder is missing, the stillbox-gen command that makes it)."""
+    """``data`` when it holds a finished dataset or a pack of one (stillbox-gen pack; which
+    one, core.data.read_dataset decides), a pack's shards all checked (size and SHA-256)
+    before anything is written; else a UserError naming --data (and, when the folder is
+    missing, the stillbox-gen command that makes it)."""
     if not data.exists():
         make = MAKE_DEFAULT_DATA if data == DEFAULT_DATA else f"{MAKE_DEFAULT_DATA} --out {data}"
         raise UserError(f"--data: no dataset at '{data}'; make one with '{make}'")
-    if not (data / "manifest.parquet").is_file():
-        raise UserError(
-            f"--data: '{data}' is not a finished stillbox-gen dataset (no manifest.parquet)"
-        )
+    from ..core.data import check_packed_shards
+
+    try:
+        check_packed_shards(data)
+    except ValueError as e:
+        raise UserError(f"--data: {e}") from None
     return data
 
 
@@ -104,7 +108,8 @@ DATA_OPTION = click.option(
     type=click.Path(path_type=Path),
     default=DEFAULT_DATA,
     show_default=True,
-    help=f"Dataset folder made by stillbox-gen (the default is made by '{MAKE_DEFAULT_DATA}').",
+    help="Dataset folder made by stillbox-gen, or its pack (stillbox-gen pack) (the default "
+    f"is made by '{MAKE_DEFAULT_DATA}').",
 )
 # ---------------------------------------------------------------- TrainConfig's settings
 

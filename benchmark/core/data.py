@@ -28,7 +28,7 @@ from stillbox_gen.camera import fov_from_focal
 from stillbox_gen.conventions import MAX_DEPTH, NOMINAL_SHIFT
 from stillbox_gen.dataset import Dataset, Scene
 from stillbox_gen.errors import DatasetError
-from stillbox_gen.formats import read_depth  # noqa: F401 - runner uses it
+from stillbox_gen.packed import PackedDataset, PackedScene, open_dataset, record_member
 
 from .flow import flow_from_depth
 
@@ -39,16 +39,42 @@ CACHE_LIMIT_BYTES = 8 * 1024**3
 DataError = DatasetError
 
 
+def read_dataset(root: str | os.PathLike) -> Dataset | PackedDataset:
+    """The dataset ``root``, a folder or a pack of it (``stillbox-gen pack``: a folder holding
+    index.json); stillbox_gen.packed.open_dataset decides, for every command's --data. DataError
+    naming ``root`` when it is neither."""
+    return open_dataset(root)
+
+
+def read_scenes(root: str | os.PathLike, split: str, limit: int | None = None) -> list[Scene]:
+    """The scenes of one split of the dataset or pack ``root`` (:func:`read_dataset`), in index
+    order, the first ``limit`` only when given. A pack's scenes are read from its shards here,
+    each shard's size and SHA-256 checked first (their frames stay in memory, encoded, as long
+    as the scenes are referenced); a folder's are read from their files when used."""
+    return list(read_dataset(root).scenes(split, limit=limit))
+
+
+def check_packed_shards(root: str | os.PathLike) -> None:
+    """When ``root`` is a pack: every shard's size and SHA-256 checked against its index.json
+    (one read of the pack), DataError naming the first that differs; nothing for a folder."""
+    ds = read_dataset(root)
+    if isinstance(ds, PackedDataset):
+        for shard in ds.shards:
+            ds.verify(shard)
+
+
 def load_scenes(root: str | os.PathLike, split: str, rotations: bool = False) -> list[Scene]:
-    """Scenes of one split, in index order (stillbox_gen.dataset.Dataset.scenes). Raises
-    DataError naming the faulty file, or the record whose file name would lead outside
-    ``root``, or, unless ``rotations`` (depthnet-unsup*'s ``--pose``), a scene with camera
-    rotations (these baselines need a stabilised dataset)."""
-    ds = Dataset(root)
-    scenes = ds.scenes(split)
+    """Scenes of one split, in index order (:func:`read_scenes`: a dataset folder or its pack).
+    Raises DataError naming the faulty file (or shard), or the record whose file name would
+    lead outside ``root``, or, unless ``rotations`` (depthnet-unsup*'s ``--pose``), a scene
+    with camera rotations (these baselines need a stabilised dataset)."""
+    scenes = read_scenes(root, split)
     for s in scenes:
         if not s.stabilised and not rotations:
-            meta = ds.root / layout.chunk_name(s.index) / layout.METADATA_JSON
+            if isinstance(s, PackedScene):  # its record is a member of its shard
+                meta = s.rgb[0].parent / record_member(s.index)
+            else:
+                meta = Path(root) / layout.chunk_name(s.index) / layout.METADATA_JSON
             raise DataError(
                 f"{meta}: scene {s.index} has camera rotations; these baselines need a "
                 "stabilised dataset (no --rotation-noise/--rotation-speed)"
@@ -60,7 +86,7 @@ def camera_of(root: str | os.PathLike) -> dict:
     """The camera a dataset was rendered with: ``{"width", "height"}`` in pixels and
     ``"fov_deg"``, the horizontal field of view in degrees (from dataset.json). A network
     trained on it expects frames of that size and field of view."""
-    cam = Dataset(root).info["config"]["camera"]
+    cam = read_dataset(root).info["config"]["camera"]
     focal = cam.get("focal_px")
     fov = cam["fov_deg"] if focal is None else fov_from_focal(focal, cam["width"])
     return {"width": int(cam["width"]), "height": int(cam["height"]), "fov_deg": float(fov)}

@@ -32,7 +32,6 @@ from ..core.data import (
     eval_firsts,
     load_scenes,
     nominal_displacement,
-    read_depth,
 )
 from ..core.device import resolve_device
 from ..core.errors import FieldError
@@ -114,7 +113,7 @@ def median_depth(scenes: list[Scene], max_frames: int = MEDIAN_FRAMES) -> tuple[
     if not frames:
         raise FieldError("data", "no training scenes to take the median depth from")
     pick = np.unique(np.linspace(0, len(frames) - 1, min(max_frames, len(frames))).astype(int))
-    values = [np.clip(read_depth(frames[i][0].depth[frames[i][1]]), 0, MAX_DEPTH) for i in pick]
+    values = [np.clip(frames[i][0].load_depth(frames[i][1]), 0, MAX_DEPTH) for i in pick]
     return float(np.median(np.concatenate([v.reshape(-1) for v in values]))), len(pick)
 
 

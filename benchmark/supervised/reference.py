@@ -22,9 +22,10 @@ import torch
 
 from stillbox_gen import layout
 from stillbox_gen.conventions import MAX_DEPTH, NOMINAL_SHIFT
+from stillbox_gen.packed import PackedDataset
 
 from ..core import runfolder
-from ..core.data import camera_of, load_scenes, nominal_displacement
+from ..core.data import camera_of, load_scenes, nominal_displacement, read_dataset
 from ..core.errors import FieldError
 
 LAUNCHER = Path(__file__).with_name("reference_launcher.py")
@@ -41,6 +42,13 @@ def author_split(data: Path, val_scenes: int = AUTHOR_VAL_SCENES) -> dict:
     of its first ``val_scenes`` val scenes as ``[[img1, img2], depth, displacement]`` paths
     relative to ``data``. FieldError on ``data`` unless the records hold the legacy ``.jpg`` and
     ``.npy`` files."""
+    if isinstance(read_dataset(data), PackedDataset):  # its records name files it lacks
+        raise FieldError(
+            "data",
+            "a pack (stillbox-gen pack) holds no --legacy copies, which the original DepthNet "
+            "code reads; give the dataset folder",
+            where=f" {data}",
+        )
     out: dict = {"train": [], "val": []}
     for split in ("train", "val"):
         for scene in load_scenes(data, split):

@@ -50,11 +50,11 @@ import numpy as np
 import torch
 
 from stillbox_gen.conventions import MAX_DEPTH
-from stillbox_gen.dataset import Dataset, Scene
+from stillbox_gen.dataset import Scene
 
 from ..core import metrics, registry
 from ..core.checkpoint import load_checkpoint, load_weights, source_error
-from ..core.data import NORM_MEAN, NORM_STD
+from ..core.data import NORM_MEAN, NORM_STD, read_scenes
 from ..core.errors import FieldError
 from ..engine.scaling import pose_scale
 from .rotation import Stabiliser, target_rotations
@@ -358,7 +358,7 @@ def test_scenes(data: Path, split: str, limit: int | None) -> list[Scene]:
     shorter than a window, on ``limit`` when below 1."""
     if limit is not None and limit < 1:
         raise FieldError("limit", f"must be at least 1, got {limit}")
-    scenes = Dataset(data).scenes(split, limit)
+    scenes = read_scenes(data, split, limit)
     if not scenes:
         raise FieldError("data", f"no scene in the {split} split", where=f" {data}")
     short = [s for s in scenes if s.frames < SEQUENCE_LENGTH]

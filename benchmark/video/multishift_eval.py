@@ -32,9 +32,10 @@ from pathlib import Path
 import torch
 from tqdm import tqdm
 
-from stillbox_gen.dataset import Dataset, Scene
+from stillbox_gen.dataset import Scene
 
 from ..core import metrics, runfolder
+from ..core.data import read_dataset, read_scenes
 from ..core.errors import FieldError, Ref
 from ..core.multishift import (
     BETA_MAX,
@@ -90,8 +91,7 @@ def check_arguments(max_shift: int, beta_mean: float, limit: int | None) -> None
 def sequences(data: Path, split: str, max_shift: int, limit: int | None) -> list[Scene]:
     """The split's scenes (first ``limit``); FieldError on ``data`` when they are too short for
     ``max_shift`` (the first scored frame) or absent."""
-    ds = Dataset(data)
-    scenes = ds.scenes(split, limit)
+    scenes = read_scenes(data, split, limit)
     if not scenes:
         raise FieldError("data", f"no scene in the {split} split", where=f" {data}")
     frames = min(s.frames for s in scenes)
@@ -293,7 +293,7 @@ def run(
     rows = evaluate_multishift(
         checkpoints, data, split, counts, max_shift, device, ema, beta_mean, limit, progress
     )
-    ds = Dataset(data)
+    ds = read_dataset(data)
     info = {
         "data": str(data),
         "split": split,
