@@ -263,9 +263,9 @@ def test_resume_settings_name_what_changed_and_bad_run_files_are_one_line_errors
     settings = toy_runs.settings(cfg, scenes)
     assert toy_runs.difference(settings, json.loads(json.dumps(settings))) is None
     other = toy_runs.settings(dataclasses.replace(cfg, iterations=5), scenes)
-    assert toy_runs.difference(settings, other) == "iterations 4, now 5"
+    assert toy_runs.difference(settings, other) == "--iterations 4, now 5"
     changed = [scenes[0], _random_scene("flower", 2, 16)]
-    assert toy_runs.difference(settings, toy_runs.settings(cfg, changed)) == "other flower data"
+    assert toy_runs.difference(settings, toy_runs.settings(cfg, changed)) == "other --flower data"
     toy_runs.start(tmp_path, settings)
     best = toy.BestRun("photometric", {"flower": torch.ones(1, 1, 2, 2)}, {"flower": None},
                        {"flower": np.zeros(3, np.float32)}, [0, 1, 2])  # fmt: skip
@@ -413,7 +413,9 @@ def test_an_interrupted_study_resumed_writes_the_uninterrupted_outputs(
     assert not (out / RESULTS_JSON).exists()
     with pytest.raises(UserError, match="^--out: .* unfinished toy study .*add --resume"):
         _invoke(*data, "--quick", "--quiet")
-    with pytest.raises(UserError, match=r"^--resume: .* other settings \(iterations 20, now 21\)$"):
+    with pytest.raises(
+        UserError, match=r"^--resume: .* other settings \(--iterations 20, now 21\)$"
+    ):
         _invoke(*data, "--quick", "--quiet", "--resume", "--iterations", 21)
     _invoke(*data, "--quick", "--quiet", "--resume")
     assert not toy_runs.folder(out).exists()

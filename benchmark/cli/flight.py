@@ -68,11 +68,11 @@ def _checkpoint_kind(path: Path) -> registry.Kind:
     return registry.MODELS[ck["model_name"]].kind
 
 
-def _constant_depth(value: float | None, data: Path) -> tuple[float, str]:
+def _constant_depth(value: float | None, data: Path, rule: str | None = None) -> tuple[float, str]:
     """--constant-depth, else the median depth of --data's training split (as compare's
     ``constant``); (metres, how it was obtained)."""
-    if value is not None:  # within limits.LIMITS
-        return value, "given with --constant-depth"
+    if value is not None:  # within limits.LIMITS (or a resumed run's, with its ``rule``)
+        return value, rule or CONSTANT_GIVEN
     from ..core.data import load_scenes
     from ..engine.runner import median_depth
 
@@ -92,7 +92,7 @@ def _source(o: dict, res: tuple[int, int], device) -> tuple[object, dict]:
     if depth == "oracle":
         return simulate.oracle, {"depth_kind": "oracle"}
     if depth == "constant":
-        value, rule = _constant_depth(o["constant_depth"], o["data"])
+        value, rule = _constant_depth(o["constant_depth"], o["data"], o.get("constant_rule"))
         return simulate.constant(value), {
             "depth_kind": "constant", "constant_depth_m": value, "constant_rule": rule,
         }  # fmt: skip
@@ -129,9 +129,9 @@ def _source(o: dict, res: tuple[int, int], device) -> tuple[object, dict]:
 @click.command("fly")
 @click.option(
     "--depth",
-    required=True,
     help="Depth source: oracle (the rendered depth), constant, or a checkpoint written by "
-    "'run' (a depth network through the infer pipeline, or a flow network: depth from flow).",
+    "'run' (a depth network through the infer pipeline, or a flow network: depth from flow).  "
+    "[required; --resume: the run's]",
 )
 @click.option(
     "--out",
@@ -186,6 +186,10 @@ def fly_cmd(**o) -> None:
 
     out: Path = o["out"]
     earlier = _check_out(out, o["resume"])
+    if earlier is not None:
+        _keep_recorded(o, earlier)
+    if o["depth"] is None:
+        raise UserError("--depth: missing (oracle, constant or a checkpoint file)")
     res: tuple[int, int] = o["res"]
     _check_numbers(o)
     settings = training_settings({"device": o["device"], "threads": o["threads"]})
@@ -205,6 +209,31 @@ def fly_cmd(**o) -> None:
         _check_resumed(out, earlier, config)
     summary = _fly(out, config, source, flight, earlier is None, not o["quiet"])
     click.echo(describe(summary, out))
+
+
+#: options and the config.json entries that record them: an option left out of --resume takes
+#: the run's value (--constant-depth: below; --data is recorded only inside constant_rule)
+RECORDED = {
+    "depth": "depth", "episodes": "episodes", "seed": "seed", "res": "res",
+    "renderer": "renderer", "shifts": "shifts", "yaw": "flight.yaw",
+    "max_steps": "flight.max_steps", "device": "device",
+}  # fmt: skip
+CONSTANT_GIVEN = "given with --constant-depth"
+
+
+def _keep_recorded(o: dict, earlier: dict) -> None:
+    """``o`` with the resumed run's values (config.json ``earlier``) for the options not given
+    again; a --depth constant run keeps its depth (given, or the median of its --data) unless
+    --constant-depth or --data is given again."""
+    then = _flat(earlier)
+    for name, key in RECORDED.items():
+        given = o[name] is not None if name == "depth" else not is_default(name)
+        if key in then and not given:
+            o[name] = tuple(then[key]) if name == "res" else then[key]
+    constant = o["depth"] == "constant" and then.get("depth_kind") == "constant"
+    if constant and is_default("constant_depth") and is_default("data"):
+        o["constant_depth"] = then.get("constant_depth_m")
+        o["constant_rule"] = then.get("constant_rule")
 
 
 def _check_numbers(o: dict) -> None:

@@ -244,6 +244,9 @@ def toy_cmd(
     cfg.lambdas = lambdas or cfg.lambdas  # each within limits.LIMITS
     cfg.kappas = kappas or cfg.kappas
     cfg.losses = _losses_option(losses) or cfg.losses
+    if resume and not quick:  # what was not given again: the unfinished study's
+        _keep_saved(out, cfg, iterations=iterations, odm_every=odm_every, lambdas=lambdas,
+                    kappas=kappas)  # fmt: skip
     scenes = [_load("--horizon", horizon, "horizon"), _load("--flower", flower, "flower")]
     settings = toy_runs.settings(cfg, scenes)
     keys = _check_resume(out, settings, resume)
@@ -287,6 +290,24 @@ def toy_cmd(
         toy_runs.remove(out)
     resumed = f" ({len(done)} of them resumed)" if done else ""
     click.echo(f"{_summary(results, seconds)}{resumed}; results in {out}")
+
+
+#: settings of a toy study that --resume keeps from its study.json when their flag is not given
+#: again (--losses and the ODM settings choose runs: toy_runs.SELECTION)
+KEPT_SETTINGS = ("iterations", "odm_every", "lambdas", "kappas")
+
+
+def _keep_saved(out: Path, cfg: study.StudyConfig, **given) -> None:
+    """``cfg`` with the unfinished study's value of each KEPT_SETTINGS setting whose option is
+    not ``given`` (None); nothing when ``out`` holds no study (_check_resume says so)."""
+    try:
+        saved = toy_runs.read_settings(out)
+    except ValueError as e:
+        raise UserError(f"--out: {e}") from None
+    for name in KEPT_SETTINGS:
+        if saved is not None and given[name] is None and name in saved:
+            value = saved[name]
+            setattr(cfg, name, tuple(value) if isinstance(value, list) else value)
 
 
 def _check_resume(out: Path, settings: dict, resume: bool) -> list[str]:

@@ -95,16 +95,17 @@ def shared(study: dict) -> dict:
 
 
 def difference(saved: dict, requested: dict) -> str | None:
-    """The first setting where ``saved`` differs from ``requested`` in words ("iterations 20,
-    now 30"; "other flower data"), or None when they match (:data:`SELECTION` aside)."""
+    """The first setting where ``saved`` differs from ``requested`` in words, by the flag of
+    ``stillbox-bench toy`` that sets it ("--iterations 20, now 30"; "other --flower data"), or
+    None when they match (:data:`SELECTION` aside)."""
     for key, value in shared(requested).items():
         was = saved.get(key)
         if was == value:
             continue
         if key == "scenes" and isinstance(was, dict):
             names = [n for n in value if was.get(n) != value[n]] or list(value)
-            return f"other {', '.join(names)} data"
-        return f"{key.replace('_', '-')} {was}, now {value}"
+            return f"other {', '.join('--' + n for n in names)} data"
+        return f"--{key.replace('_', '-')} {was}, now {value}"
     return None
 
 
