@@ -98,11 +98,21 @@ def test_the_lock_is_released_and_its_file_removed(tiny_dataset, tmp_path):
 # ---------------------------------------------------------------- frames of another size
 
 
+#: the commands that score a checkpoint on a dataset's frames (one size check for all:
+#: engine.runner.check_frame_size), with what they need besides --ckpt, --data and --out
+SCORING = {
+    "eval": [],
+    "eval-sequences": ["--quiet"],
+    "eval-multishift": ["--max-shift", "3", "--quiet"],
+}
+
+
 @pytest.mark.render
+@pytest.mark.parametrize("command", sorted(SCORING))
 @pytest.mark.parametrize("res", ["32", "128"])
 @pytest.mark.parametrize("folder", ["new", "existing"])
 def test_eval_on_frames_of_another_size_names_data_and_both_sizes(
-    other_sizes, tmp_path, res, folder
+    other_sizes, tmp_path, command, res, folder
 ):
     """A checkpoint trained on 64x64 px frames scored on 32 px frames (which it cannot read) or
     128 px ones (which it reads at twice its pixels' scale): one line naming --data, the frames'
@@ -113,7 +123,8 @@ def test_eval_on_frames_of_another_size_names_data_and_both_sizes(
     out = tmp_path / "out"
     if folder == "existing":
         out.mkdir()
-    proc = bench("eval", "--ckpt", ckpt, "--data", data, "--out", out, check=False)
+    args = ["--ckpt", ckpt, "--data", data, "--out", out, *SCORING[command]]
+    proc = bench(command, *args, check=False)
     assert_bench_error(proc, f"--data {data}", f"{res}x{res} px", "64x64 px", str(ckpt))
     assert (list(out.iterdir()) == []) if folder == "existing" else not out.exists()
 

@@ -371,15 +371,13 @@ def test_scenes(data: Path, split: str, limit: int | None) -> list[Scene]:
 
 
 def check_size(models: list[EvalModel], scenes: list[Scene], data: Path) -> None:
-    """FieldError on ``ckpt`` when a checkpoint was trained on another frame size."""
-    h, w = scenes[0].load_rgb(0).shape[:2]
+    """FieldError on ``data`` when a checkpoint was trained on another frame size, or its
+    network cannot read the frames (eval's own check, runner.check_frame_size)."""
+    from ..engine.runner import check_frame_size, frame_size
+
+    size = frame_size(scenes)
     for m in models:
-        cam = m.camera
-        if cam and (cam["height"], cam["width"]) != (h, w):
-            raise FieldError(
-                "ckpt", f"trained on {cam['width']}x{cam['height']} frames, {data} has {w}x{h}",
-                where=f" {m.checkpoint}",
-            )  # fmt: skip
+        check_frame_size({"camera": m.camera}, m.net, size, data, m.checkpoint)
 
 
 def evaluate(

@@ -51,6 +51,7 @@ from ..core.multishift import (
 from ..core.runfolder import RESULTS_CSV, RESULTS_JSON, RESULTS_MD
 from ..engine.frame_depth import frame_depth, network_outputs
 from ..engine.network import depth_network
+from ..engine.runner import check_frame_size, frame_size
 
 BANDS = ((0.0, 10.0), (10.0, 25.0), (25.0, 50.0), (50.0, 100.0))  # ground-truth depth, metres
 SCORES = ("mae", "mre", "mle")
@@ -182,15 +183,10 @@ def evaluate_multishift(
         model, scale, info = depth_network(ckpt, "ckpt")
         nets.append((ckpt, (model.to(device), info["clamp"], device), scale, info))
     scenes = sequences(data, split, max_shift, limit)
-    size = scenes[0].load_rgb(0).shape[:2]
-    for ckpt, _, _, info in nets:
-        if (info["height"], info["width"]) != size:
-            raise FieldError(
-                "ckpt",
-                f"trained on {info['width']}x{info['height']} frames, the sequences are "
-                f"{size[1]}x{size[0]}",
-                where=f" {ckpt}",
-            )
+    size = frame_size(scenes)
+    for ckpt, (model, _, _), _, info in nets:  # eval's own check: FieldError naming --data
+        camera = {"width": info["width"], "height": info["height"]}
+        check_frame_size({"camera": camera}, model, size, data, ckpt)
     tallies = {(i, s.n): Tally() for i in range(len(nets)) for s in plan}
     for scene in tqdm(scenes, desc="sequences", unit="scene", disable=not progress):
         frames = [scene.load_rgb(f) for f in range(scene.frames)]
