@@ -83,6 +83,35 @@ def test_second_writer_of_an_out_folder_is_refused(tiny_dataset, tmp_path, comma
 
 
 @pytest.mark.render
+@pytest.mark.parametrize("command", ["report", "compare", "toy"])
+def test_report_compare_and_toy_refuse_a_second_writer(tiny_dataset, toy_data, tmp_path, command):
+    """report (into the folder of OUT.md), compare and toy hold --out's lock as the other
+    commands do: while another process holds it, one line naming --out and the holder, and
+    nothing written beside the lock file; once it is free, the same command runs and leaves
+    no lock file."""
+    run, out = tmp_path / "run", tmp_path / "out"
+    bench("run", "constant", "--data", tiny_dataset, "--out", run)
+    args = {
+        "report": ["report", run, "--out", out / "table"],
+        "compare": ["compare", "--data", tiny_dataset, "--models", "constant", "--out", out],
+        "toy": [
+            *("toy", "--flower", toy_data["flower"], "--horizon", toy_data["horizon"]),
+            *("--iterations", 1, "--losses", "tv", "--lambdas", 1, "--kappas", 1, "--quiet"),
+            *("--out", out),
+        ],
+    }[command]
+    holder = hold_lock(out)
+    try:
+        proc = bench(*args, check=False)
+        assert_bench_error(proc, f"--out: '{out}' is in use by another run (process {holder.pid}")
+        assert [p.name for p in out.iterdir()] == [LOCK_FILE]
+    finally:
+        kill_9(holder)
+    bench(*args)
+    assert not (out / LOCK_FILE).exists() and len(list(out.iterdir())) > 0
+
+
+@pytest.mark.render
 def test_the_lock_is_released_and_its_file_removed(tiny_dataset, tmp_path):
     """A finished command leaves its outputs and no lock file; the next one into the folder runs."""
     out = tmp_path / "speed"

@@ -266,7 +266,8 @@ def report(runs: tuple[Path, ...], out: Path) -> None:
     if missing:
         raise UserError(f"RUNS: no {SUMMARY_JSON} in {', '.join(missing)}")
     check_comparison_out(out)
-    click.echo(_comparison(list(runs), out))
+    with locked_out(out.parent):  # the folder of OUT.md, OUT.csv and the figure
+        click.echo(_comparison(list(runs), out))
 
 
 def check_comparison_out(out: Path, flag: str = "--out") -> None:
@@ -316,6 +317,8 @@ def compare(data: Path, names: str, out: Path | None, **o) -> None:
     if out is None:
         out = Path("runs") / f"compare-{data.resolve().name}-{time.strftime('%Y%m%d-%H%M%S')}"
     check_out_folder(out, error=UserError)
+    # one compare per --out at a time (each method's run folder holds its own lock too)
+    click.get_current_context().with_resource(locked_out(out))
     runs = []
     for name in chosen:
         run_dir = out / name

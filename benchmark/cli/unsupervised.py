@@ -249,6 +249,8 @@ def toy_cmd(
                     kappas=kappas)  # fmt: skip
     scenes = [_load("--horizon", horizon, "horizon"), _load("--flower", flower, "flower")]
     settings = toy_runs.settings(cfg, scenes)
+    # one study per --out at a time, until the command ends (released by click's context)
+    click.get_current_context().with_resource(locked_out(out))
     keys = _check_resume(out, settings, resume)
     try:
         out = runfolder.make_folder(out)
