@@ -74,7 +74,8 @@ def dispatch_variants() -> dict[str, dict[str, str]]:
         out["openblas-haswell"] = {"OPENBLAS_CORETYPE": "Haswell"}
     if "avx512f" in flags:
         out["openblas-skylakex"] = {"OPENBLAS_CORETYPE": "SkylakeX"}
-    from numpy.core._multiarray_umath import __cpu_baseline__, __cpu_features__
+    # numpy._core: numpy 2's name (numpy.core warns there); numpy 1.26 has it too
+    from numpy._core._multiarray_umath import __cpu_baseline__, __cpu_features__
 
     found = [f for f, on in __cpu_features__.items() if on and f not in __cpu_baseline__]
     if found:
