@@ -289,6 +289,22 @@ def test_pose_warmup_trains_posenet_alone_then_both_and_resumes_into_the_right_p
     assert not (tmp_path / "km").exists()
 
 
+def test_steps_csv_logs_the_terms_and_posenets_direction(tiny_dataset, tmp_path):
+    """depthnet-unsup's steps.csv: photometric + smooth = loss on every row, and pose_cosine 1
+    when the warps use the dataset's motion (--known-motion), within [−1, 1] with PoseNet's."""
+    base = ["run", "depthnet-unsup-tiny", "--data", tiny_dataset, "--quiet", "--batch-size", 4]
+    for flags in (["--known-motion"], []):
+        out = tmp_path / ("km" if flags else "posenet")
+        bench(*base, *flags, "--out", out, "--max-steps", 2, "--log-every", 1)
+        rows = list(csv.DictReader((out / "steps.csv").open()))
+        assert len(rows) == 2
+        for row in rows:
+            terms = float(row["photometric"]) + float(row["smooth"])
+            assert terms == pytest.approx(float(row["loss"]), rel=1e-5)
+            cosine = float(row["pose_cosine"])
+            assert cosine == pytest.approx(1.0, abs=1e-5) if flags else -1 <= cosine <= 1
+
+
 def test_pretrained_depthnet_initialises_the_depth_half():
     """--pretrained with a supervised DepthNet's checkpoint (thesis §5.4.4's D + O -> O) loads
     it into depthnet-unsup's DepthNet and leaves its PoseNet as initialised; a depthnet-unsup

@@ -21,7 +21,13 @@ from benchmark.core.posenet import euler_matrix
 from benchmark.unsupervised.reprojection import inverse_warp, rotate_frame
 from benchmark.unsupervised.rotation import Stabiliser, check_pose, target_rotations
 from benchmark.unsupervised.sequences import SequenceDataset
-from benchmark.unsupervised.training import PhotometricStep, compensate, smooth_settings
+from benchmark.unsupervised.training import (
+    PhotometricStep,
+    compensate,
+    pose_cosine,
+    smooth_settings,
+    true_translations,
+)
 
 
 def _rx(a):  # hand-built right-handed rotations about the camera axes
@@ -184,7 +190,17 @@ def test_known_orientations_stabilise_and_warp_a_rendered_sequence(rotating_data
             torch.testing.assert_close(norms, torch.full_like(norms, 0.3), rtol=1e-4, atol=0)
             assert not torch.equal(net.seen[:, :3], batch["input"][:, :3])  # stabilised
             assert torch.equal(net.seen[:, 3:], batch["input"][:, 3:])
+            # steps.csv's pose_cosine: 1 for the true motion, −1 for its opposite
+            used = loss[pose]["translations"]
+            assert pose_cosine(batch, used) == pytest.approx(1.0, abs=1e-4)
+            assert pose_cosine(batch, -used) == pytest.approx(-1.0, abs=1e-4)
     assert loss["orientation"]["photometric"] < 0.8 * loss["translation"]["photometric"], loss
+    # the true τ_i of X_i = R·X_t + τ_i, straight from the dataset's relative poses
+    for j, i in enumerate(indices):
+        k, first, t, _ = data.draw(i, 0)
+        for f in range(5):
+            tau = scenes[k].relative_pose(first + t, first + f)[:3, 3]
+            np.testing.assert_allclose(true_translations(batch)[j, f], tau, atol=1e-5)
 
 
 def _one_line(proc, word: str) -> None:

@@ -9,7 +9,8 @@ nominal displacement the depth answers for, shift × the split's median metres p
 state (``progress["global_step"]``: optimiser steps done, resumed ones included). It returns the
 training set (indexable, with ``set_epoch(epoch)`` and ``batch(indices, epoch)`` as
 core.data.PairDataset) and the step: a callable that takes one batch, makes one optimiser step
-and returns the loss (a 0-d tensor).
+and returns the loss (a 0-d tensor). A step may also have ``logged()``: more steps.csv columns
+for its last call (:func:`logged_columns`; the photometric step's terms and PoseNet's direction).
 
 The packages that define steps fill the table when imported: benchmark.engine.pair_step (depth
 and flow learnt from pairs with ground truth, chapter 3), benchmark.unsupervised.training (depth
@@ -68,3 +69,10 @@ def step_maker(target: Target) -> StepMaker:
             f"no training step registered for target '{target.value}': import the package that "
             "defines it (benchmark.unsupervised.training for 'video'; stillbox-bench imports all)"
         ) from None
+
+
+def logged_columns(step: Step) -> dict[str, float]:
+    """The steps.csv columns of ``step``'s last call beside its loss: its ``logged()`` when it
+    has one, else none (read at logged steps only: it may cost a synchronisation)."""
+    logged = getattr(step, "logged", None)
+    return logged() if logged is not None else {}

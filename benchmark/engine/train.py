@@ -50,7 +50,7 @@ from ..core.posenet import DepthPoseNet
 from ..core.stopping import stop_requests
 from . import evaluate, pair_step  # noqa: F401 - pair_step registers the depth and flow steps
 from .resume import RESUME_KEYS, check_resumed_settings
-from .steps import step_maker
+from .steps import logged_columns, step_maker
 
 
 def environment(device: torch.device) -> dict:
@@ -464,17 +464,16 @@ class Trainer:
                 )
                 bar.update(1)
                 if self.is_main_process and st["global_step"] % cfg.log_every == 0:
-                    runfolder.append_row(
-                        self.run,
-                        runfolder.STEPS_CSV,
-                        {
-                            "step": st["global_step"],
-                            "epoch": st["epoch"],
-                            "loss": value,
-                            "lr": self.opt.param_groups[0]["lr"],
-                        },
-                    )
-                    self.tb.add_scalar("train/loss", value, st["global_step"])
+                    row = {
+                        "step": st["global_step"],
+                        "epoch": st["epoch"],
+                        "loss": value,
+                        "lr": self.opt.param_groups[0]["lr"],
+                    }
+                    terms = logged_columns(self.train_step)
+                    runfolder.append_row(self.run, runfolder.STEPS_CSV, row | terms)
+                    for k, v in {"loss": value, **terms}.items():
+                        self.tb.add_scalar(f"train/{k}", v, st["global_step"])
                 if cfg.ckpt_every and st["global_step"] % cfg.ckpt_every == 0:
                     self.checkpoint("last")
                 if st["global_step"] >= total or stop:

@@ -50,7 +50,7 @@ from ..engine.footage_job import InferOptions, prepare
 from ..engine.train import NonFiniteLoss, environment, make_optimizer
 from .footage_sequences import describe_stretches, footage_store, frame_stride
 from .sequences import SequenceDataset
-from .training import PhotometricStep, smooth_settings
+from .training import PhotometricStep, pose_cosine, smooth_settings
 
 #: Optimiser steps of a fine-tuning: 5 passes over a 1-minute 30 fps flight (1,800 frames) at
 #: batch 32, about 1 CPU-hour at 64 px here (unsupervised steps: ~10 samples per CPU-second)
@@ -183,17 +183,6 @@ def freeze_depth(net: DepthPoseNet, frozen: bool) -> None:
     with the checkpoint's it got better (4.50 m; docs/results/finetune/README.md)."""
     net.depth.requires_grad_(not frozen)
     net.depth.eval()
-
-
-def pose_cosine(batch: dict, translations: torch.Tensor) -> float:
-    """Mean cosine between PoseNet's reference translation (``translations`` (B, N, 3), the
-    normalised ones PhotometricStep used: X_r = X_t + τ_r) and the known one, −(p_r − p_t) in the
-    axes of ``--poses`` (meaningful when they are camera axes: x right, y down, z forward)."""
-    rows = torch.arange(len(translations))
-    ref = batch["reference_index"]
-    known = -batch["translation"][rows, ref].to(translations.device)
-    cos = torch.nn.functional.cosine_similarity(translations[rows, ref].detach(), known, dim=1)
-    return float(cos.mean())
 
 
 class Finetuner:

@@ -112,6 +112,29 @@ def compensate(
     return poses - (rotations @ poses[rows, target_index].view(-1, 1, 3, 1)).squeeze(-1)
 
 
+def true_translations(batch: dict) -> torch.Tensor:
+    """``(B, N, 3)`` metres: each frame's true ``τ_i`` (``X_i = R_{t→i}·X_t + τ_i``, the warps'
+    convention) from a batch's camera positions ``translation`` ``p_i`` (target axes) and its
+    ``rotation`` ``R_{t→i}`` when it has one: ``τ_i = −R_{t→i}·p_i`` (``−p_i`` on stabilised
+    data)."""
+    p = batch["translation"].float()
+    rotation = batch.get("rotation")
+    if rotation is None:
+        return -p
+    return -(rotation.float() @ p.unsqueeze(-1)).squeeze(-1)
+
+
+def pose_cosine(batch: dict, translations: torch.Tensor) -> float:
+    """Mean over a batch of the cosine between the translation used for each sample's reference
+    (``translations`` ``(B, N, 3)``: PhotometricStep's, PoseNet's after compensation and eq. 5.2)
+    and the true one (:func:`true_translations`): PoseNet's direction of motion, 1 when right."""
+    rows = torch.arange(len(translations))
+    ref = batch["reference_index"]
+    known = true_translations(batch)[rows, ref].to(translations.device)
+    cos = F.cosine_similarity(translations[rows, ref].detach().float(), known, dim=1)
+    return float(cos.mean())
+
+
 def normalise_translations(
     translations: torch.Tensor,
     reference_index: torch.Tensor,
@@ -276,7 +299,20 @@ class PhotometricStep:
         return terms
 
     def __call__(self, batch: dict) -> torch.Tensor:
-        return self.update(batch)["loss"]
+        terms = self.update(batch)
+        self._last = batch, {k: v.detach() for k, v in terms.items()}
+        return terms["loss"]
+
+    def logged(self) -> dict[str, float]:
+        """steps.csv's columns of the last call beside its loss (benchmark.engine.steps): the
+        ``photometric`` and ``smooth`` terms of eq. 5.5 and PoseNet's direction,
+        ``pose_cosine`` (:func:`pose_cosine`; 1 with the known motion)."""
+        batch, terms = self._last
+        return {
+            "photometric": float(terms["photometric"]),
+            "smooth": float(terms["smooth"]),
+            "pose_cosine": pose_cosine(batch, terms["translations"]),
+        }
 
 
 class PoseWarmup:
