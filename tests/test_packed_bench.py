@@ -13,6 +13,7 @@ from pathlib import Path
 import pytest
 import torch
 from conftest import invoke_cli, invoke_main
+from test_bench_hardening import assert_bench_error
 
 from benchmark import cli
 from benchmark.core import runfolder
@@ -29,16 +30,6 @@ TIMING = ("samples_per_s", "data_wait_share", "seconds")
 
 def bench(*args: object):
     return invoke_main(cli.main, *args)
-
-
-def one_line_error(proc, *words: str) -> str:
-    """Exit 2, one stderr line ``stillbox-bench: error: ...`` naming ``words``."""
-    lines = proc.stderr.strip().splitlines()
-    assert proc.returncode == 2, proc.stderr
-    assert len(lines) == 1 and lines[0].startswith("stillbox-bench: error: "), proc.stderr
-    for w in words:
-        assert w in lines[0], (w, lines[0])
-    return lines[0]
 
 
 @pytest.fixture(scope="module")
@@ -176,7 +167,7 @@ def test_a_corrupted_shard_is_refused_before_anything_is_written(packed, runs, t
         "eval-sequences": ["eval-sequences", "--ckpt", ckpt, "--quiet"],
     }[command]
     proc = bench(*args, "--data", bad, "--out", out)
-    one_line_error(proc, "--data", shard, "SHA-256")
+    assert_bench_error(proc, "--data", shard, "SHA-256")
     assert not out.exists()
     with pytest.raises(DatasetError, match=shard):  # the reader refuses it too
         load_scenes(bad, "test")
@@ -188,7 +179,7 @@ def test_an_unfinished_pack_is_refused_in_one_line(packed, tmp_path):
     (unfinished / INDEX_JSON).unlink()
     out = tmp_path / "out"
     proc = bench("run", "constant", "--data", unfinished, "--out", out)
-    one_line_error(proc, "--data", str(unfinished), INDEX_JSON)
+    assert_bench_error(proc, "--data", str(unfinished), INDEX_JSON)
     assert not out.exists()
 
 
