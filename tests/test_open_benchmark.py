@@ -14,7 +14,7 @@ import pytest
 from test_bench import bench
 
 from benchmark.core import metrics, runfolder
-from benchmark.core.data import load_scenes, read_depth
+from benchmark.core.data import load_scenes
 from benchmark.engine.predictions import PNG_SCALE
 from stillbox_gen.conventions import NOMINAL_SHIFT
 
@@ -33,7 +33,7 @@ def _write(folder: Path, data: Path, split: str, make, ext: str = "npy", frames=
         for f in frames if frames is not None else range(len(scene.depth)):
             path = folder / runfolder.prediction_name(scene.index, f, ext)
             path.parent.mkdir(parents=True, exist_ok=True)
-            depth = make(read_depth(scene.depth[f]))
+            depth = make(scene.load_depth(f))
             if ext == "npy":
                 np.save(path, depth.astype(np.float32))
             else:
