@@ -28,7 +28,13 @@ from stillbox_gen.camera import fov_from_focal
 from stillbox_gen.conventions import MAX_DEPTH, NOMINAL_SHIFT
 from stillbox_gen.dataset import Dataset, Scene
 from stillbox_gen.errors import DatasetError
-from stillbox_gen.packed import PackedDataset, PackedScene, open_dataset, record_member
+from stillbox_gen.packed import (
+    PackedDataset,
+    PackedScene,
+    is_packed,
+    open_dataset,
+    record_member,
+)
 
 from .flow import flow_from_depth
 
@@ -85,8 +91,10 @@ def load_scenes(root: str | os.PathLike, split: str, rotations: bool = False) ->
 def camera_of(root: str | os.PathLike) -> dict:
     """The camera a dataset was rendered with: ``{"width", "height"}`` in pixels and
     ``"fov_deg"``, the horizontal field of view in degrees (from dataset.json). A network
-    trained on it expects frames of that size and field of view."""
-    cam = read_dataset(root).info["config"]["camera"]
+    trained on it expects frames of that size and field of view. Only dataset.json is read (a
+    pack holds it too): a checkpoint's training set needs no more of itself to be present."""
+    info = PackedDataset(root).info if is_packed(root) else Dataset(root).info
+    cam = info["config"]["camera"]
     focal = cam.get("focal_px")
     fov = cam["fov_deg"] if focal is None else fov_from_focal(focal, cam["width"])
     return {"width": int(cam["width"]), "height": int(cam["height"]), "fov_deg": float(fov)}
