@@ -195,7 +195,10 @@ def test_unsup_128_tables_match_their_outputs():
     control, losses = control.split("## Where the training loss")
     scored = {
         name: _sequence_rows(folder / name / "results.csv")
-        for name in ("orientation", "supervised", "finetune", "known-motion")
+        for name in (
+            *("orientation", "supervised", "finetune", "known-motion"),
+            *("known-motion-continued", "finetune-warmup"),
+        )
     }
     main = {
         "constant plane (GT median)": ("orientation", ""),
@@ -209,6 +212,15 @@ def test_unsup_128_tables_match_their_outputs():
         "D + O → O: `depthnet-unsup --pose orientation --pretrained` the supervised `best.pt`, "
         "epoch 1": ("finetune", "ft-128/kept/epoch_1.pt"),
         "same, epoch 3": ("finetune", "ft-128/kept/epoch_3.pt"),
+        "D + O → O with `--pose-warmup 200 --smooth-weight 0`, epoch 2 (end of the warm-up: "
+        "DepthNet still the supervised one)": (
+            "finetune-warmup",
+            "ft-128-pw200/orientation/kept/epoch_2.pt",
+        ),
+        "same warm-up run, epoch 4": (
+            "finetune-warmup",
+            "ft-128-pw200/orientation/kept/epoch_4.pt",
+        ),
     }
     table = _table(runs)
     for label, (name, ckpt) in main.items():
@@ -223,11 +235,20 @@ def test_unsup_128_tables_match_their_outputs():
     table, known = _table(control), scored["known-motion"]
     constant = known[("upright", "", "GT", "False")]
     _agree(_numbers(table["constant plane (GT median)"][1]), _mae_mre_mle(constant))
-    for epoch in (4, 8, 12):
-        (label,) = [k for k in table if k.startswith(f"epoch {epoch} (")]
-        ckpt = f"runs/km-128/kept/epoch_{epoch}.pt"
-        _agree(_numbers(table[label][1]), _mae_mre_mle(known[("upright", ckpt, "P", "False")]))
-        fixed = known[("upright", ckpt, "P (fixed pair)", "False")]
+    continued = scored["known-motion-continued"]
+    rows = [(f"epoch {e} (", f"runs/km-128/kept/epoch_{e}.pt", known) for e in (4, 8, 12)]
+    rows += [
+        (
+            f"continued, epoch {12 + e} (",
+            f"runs/km-128-cont/known-motion/kept/epoch_{e}.pt",
+            continued,
+        )
+        for e in (4, 8)
+    ]
+    for start, ckpt, results in rows:
+        (label,) = [k for k in table if k.startswith(start)]
+        _agree(_numbers(table[label][1]), _mae_mre_mle(results[("upright", ckpt, "P", "False")]))
+        fixed = results[("upright", ckpt, "P (fixed pair)", "False")]
         _agree(_numbers(table[label][2]), _mae_mre_mle(fixed))
     # the loss table: each depth's loss with the true and with PoseNet's translations, as printed
     printed: dict[str, list[float]] = {}

@@ -20,7 +20,8 @@ or keys), never a measured number, so that a change of the library that breaks o
   ``benchmark``), generator-speed/``levers.py``: one step or scene per timing, 64 or 16 px;
 - unsup-128/``loss_at_candidates.py``: a 1-step depthnet-unsup-tiny run on tiny_dataset
   (``--known-motion``) and on rotating_dataset (``--pose orientation``), 8 windows;
-  ``pretrained_start.py``: the untrained depthnet-tiny checkpoint on tiny_dataset, 4 windows.
+  ``pretrained_start.py``: the untrained depthnet-tiny checkpoint on tiny_dataset, 4 windows;
+  ``rotating_pose_control.py``: rotating_dataset's training scene, 2 steps.
 
 Not covered: the author's own code (github.com/ClementPinard/unsupervised-depthnet) is not on
 this machine (offline), so ``harness.py verify`` (it imports the author's ``models``) is not run,
@@ -513,3 +514,17 @@ def test_pretrained_start(tiny_dataset, tiny_ckpt):
             rf"photometric {NUMBER} \(finest map alone\)",
             terms,
         ), terms
+
+
+@pytest.mark.render
+def test_rotating_pose_control(rotating_dataset):
+    """PoseNet against the true depth of rotating windows: a header and the cosine lines."""
+    out = lines_of(run_script("unsup-128/rotating_pose_control.py", rotating_dataset, 2, 1))
+    assert re.fullmatch(
+        rf"{re.escape(str(rotating_dataset))}: \d+ windows of 1 scenes, --pose orientation, "
+        "true depth",
+        out[0],
+    ), out[0]
+    assert [line.split(":")[0] for line in out[1:]] == ["after 0 steps", "after 2 steps"]
+    for line in out[1:]:
+        assert re.fullmatch(rf"after \d steps: loss {NUMBER}, pose cosine {NUMBER}", line), line
