@@ -517,12 +517,17 @@ def test_pretrained_start(tiny_dataset, tiny_ckpt):
 
 
 @pytest.mark.render
-def test_rotating_pose_control(rotating_dataset):
-    """PoseNet against the true depth of rotating windows: a header and the cosine lines."""
-    out = lines_of(run_script("unsup-128/rotating_pose_control.py", rotating_dataset, 2, 1))
+@pytest.mark.parametrize("with_ckpt", [False, True])
+def test_rotating_pose_control(rotating_dataset, tiny_ckpt, with_ckpt):
+    """PoseNet against the true depth of rotating windows, or a frozen checkpoint's: a header
+    and the cosine lines."""
+    ckpt = [tiny_ckpt] if with_ckpt else []
+    script = "unsup-128/rotating_pose_control.py"
+    out = lines_of(run_script(script, rotating_dataset, 2, 1, *ckpt))
+    source = f"depth of {tiny_ckpt}" if with_ckpt else "true depth"
     assert re.fullmatch(
         rf"{re.escape(str(rotating_dataset))}: \d+ windows of 1 scenes, --pose orientation, "
-        "true depth",
+        + re.escape(source),
         out[0],
     ), out[0]
     assert [line.split(":")[0] for line in out[1:]] == ["after 0 steps", "after 2 steps"]
