@@ -197,7 +197,7 @@ def test_unsup_128_tables_match_their_outputs():
         name: _sequence_rows(folder / name / "results.csv")
         for name in (
             *("orientation", "supervised", "finetune", "known-motion"),
-            *("known-motion-continued", "finetune-warmup"),
+            *("known-motion-continued", "finetune-warmup", "finetune-smooth-weight-0"),
         )
     }
     main = {
@@ -212,6 +212,14 @@ def test_unsup_128_tables_match_their_outputs():
         "D + O → O: `depthnet-unsup --pose orientation --pretrained` the supervised `best.pt`, "
         "epoch 1": ("finetune", "ft-128/kept/epoch_1.pt"),
         "same, epoch 3": ("finetune", "ft-128/kept/epoch_3.pt"),
+        "D + O → O with `--smooth-weight 0`, epoch 1": (
+            "finetune-smooth-weight-0",
+            "ft-128-sw0/orientation/kept/epoch_1.pt",
+        ),
+        "same without smooth term, epoch 3": (
+            "finetune-smooth-weight-0",
+            "ft-128-sw0/orientation/kept/epoch_3.pt",
+        ),
         "D + O → O with `--pose-warmup 200 --smooth-weight 0`, epoch 2 (end of the warm-up: "
         "DepthNet still the supervised one)": (
             "finetune-warmup",
