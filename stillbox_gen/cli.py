@@ -21,6 +21,7 @@ from .conventions import MAX_DEPTH, NOMINAL_SHIFT, default_root
 from .errors import ConfigError, DatasetError
 from .formats import disk_full_message, is_disk_full
 from .layout import enclosing_dataset
+from .lock import MAX_SHARDS
 from .workers import Terminated, sigterm_as_interrupt
 
 if TYPE_CHECKING:
@@ -306,8 +307,8 @@ def parse_shard(value: str) -> tuple[int, int]:
         i, n = (int(v) for v in value.split("/"))
     except ValueError:
         raise ConfigError(f"--shard: expected I/N (e.g. 0/4), got '{value}'") from None
-    if not (n >= 1 and 0 <= i < n):
-        raise ConfigError(f"--shard: need N >= 1 and 0 <= I < N, got '{value}'")
+    if not (1 <= n <= MAX_SHARDS and 0 <= i < n):
+        raise ConfigError(f"--shard: need 1 <= N <= {MAX_SHARDS:,} and 0 <= I < N, got '{value}'")
     return i, n
 
 

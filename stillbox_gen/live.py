@@ -12,7 +12,8 @@ The worker ends with :meth:`~LiveRenderer.close` (or the ``with`` block), and wi
 however it ends (stillbox_gen.workers.exit_with_parent; on Linux the kernel kills it when the
 thread that created the LiveRenderer ends, so create it in a thread that lives as long as it is
 used). A worker that dies raises :class:`WorkerDied` in the driver at the next call, never a
-hang.
+hang; one that lives but gives no answer within ``timeout`` seconds (stopped, deadlocked, a
+driver of its GPU stuck) is killed and raises :class:`WorkerHung`.
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ from __future__ import annotations
 import contextlib
 import os
 import pickle
+import select
 import shutil
 import subprocess
 import sys
@@ -33,25 +35,42 @@ from .record import SceneSpec
 from .worker_setup import require_blender
 
 CLOSE_SECONDS = 10.0  # how long close() waits for the worker to end before killing it
+#: how long one request may wait for the worker's first byte of answer (s): far above Blender's
+#: start (seconds) and a frame of the largest closed-loop sizes; a worker this late is hung
+ANSWER_SECONDS = 600.0
 
 
 class WorkerDied(RuntimeError):
     """The Blender worker process ended while the driver still needed it."""
 
 
+class WorkerHung(WorkerDied):
+    """The Blender worker gave no answer in time; it was killed."""
+
+
 class LiveRenderer:
     """One persistent Blender worker rendering frames on demand (see the module docstring).
 
     ``device``: a ``--device`` choice (config.DEVICES; "auto" looks for a GPU as the generator
-    does); ``threads``: Cycles threads (0: all cores). ConfigError (one line) without Blender
-    or for a device Cycles does not find. :attr:`device_report` is the worker's one-line report
-    of its render device (``render device: CPU``).
+    does); ``threads``: Cycles threads (0: all cores); ``timeout``: seconds a request waits for
+    the start of its answer before the worker is killed (:class:`WorkerHung`). ConfigError (one
+    line) without Blender or for a device Cycles does not find. :attr:`device_report` is the
+    worker's one-line report of its render device (``render device: CPU``).
     """
 
-    def __init__(self, cfg: DatasetConfig, device: str = "cpu", threads: int = 0) -> None:
+    def __init__(
+        self,
+        cfg: DatasetConfig,
+        device: str = "cpu",
+        threads: int = 0,
+        timeout: float = ANSWER_SECONDS,
+    ) -> None:
         if device not in DEVICES:
             raise ConfigError(f"--device {device}: not one of {', '.join(DEVICES)}")
+        if not timeout > 0:
+            raise ValueError(f"timeout must be > 0 seconds, got {timeout!r}")
         require_blender()
+        self.timeout = float(timeout)
         self._scene: SceneSpec | None = None
         self._gone: Exception | None = None  # what calls raise from now on (closed, died)
         # the worker's frame files, and its TMPDIR: Blender's own session folder goes there too,
@@ -136,15 +155,22 @@ class LiveRenderer:
 
     def _call(self, *request):
         """Send one request, return its answer; ConfigError / RuntimeError of a failed request,
-        WorkerDied when the worker is gone."""
+        WorkerDied when the worker is gone, WorkerHung when no answer starts within
+        ``self.timeout`` seconds."""
         if self._gone is not None:
             raise type(self._gone)(str(self._gone))
         try:
             pickle.dump(request, self._proc.stdin, protocol=pickle.HIGHEST_PROTOCOL)
             self._proc.stdin.flush()
+            # the answer pipe holds nothing between requests (one answer per request, read
+            # whole), so its descriptor turns readable exactly when this answer starts
+            if not select.select([self._answers], [], [], self.timeout)[0]:
+                raise self._hung(request[0] if isinstance(request[0], str) else "start")
             answer = pickle.load(self._answers)
         except (OSError, EOFError, pickle.UnpicklingError):
             raise self._died() from None
+        except WorkerHung:
+            raise
         except BaseException:  # Ctrl-C, SIGTERM: the answer would come to the next request
             self._gone = RuntimeError("LiveRenderer: a request was interrupted (worker stopped)")
             self._proc.kill()
@@ -154,6 +180,16 @@ class LiveRenderer:
             return answer[1]
         _, kind, message = answer
         raise (ConfigError if kind == "config" else RuntimeError)(message)
+
+    def _hung(self, what: object) -> WorkerHung:
+        self._proc.kill()
+        self._proc.wait()
+        self._gone = WorkerHung(
+            f"the live Blender worker (pid {self._proc.pid}) gave no answer to a {what!r} "
+            f"request in {self.timeout:g} s and was stopped"
+        )
+        self.close()
+        return WorkerHung(str(self._gone))
 
     def _died(self) -> WorkerDied:
         try:

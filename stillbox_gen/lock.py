@@ -14,7 +14,10 @@ Shards (``generate --shard I/N``) render disjoint scenes into one folder at the 
 holds a shared lock on byte 0 of the file and an exclusive lock on a byte of its own
 (:func:`_shard_byte`), so two runs of the same shard, or a shard beside an unsharded run (which
 locks the whole file exclusively), are refused, while the shards of one split run together.
-Shards of two different splits (``0/2`` beside ``0/4``) are not told apart.
+Each shard also holds a shared lock on a byte of its split N (:func:`_split_byte`, far above the
+shard bytes) and, once locked, looks for a lock on any other split's byte: shards of two
+different splits (``0/2`` beside ``0/4``, whose scenes overlap) are refused. Two of them starting
+at the same instant may both be refused, never both admitted.
 
 POSIX locks belong to a process: a second lock of the same folder from the same process would
 succeed, and closing any descriptor of the file would drop it. :func:`folder_lock` therefore
@@ -52,11 +55,33 @@ def _shard_byte(shard: tuple[int, int]) -> int:
     return 1 + n * (n - 1) // 2 + i
 
 
+#: the largest N of ``--shard I/N``: its shard bytes (about N^2 / 2) stay below _SPLIT_BASE
+MAX_SHARDS = 1_000_000
+#: first byte of the split bytes: above every shard byte of any split up to MAX_SHARDS
+_SPLIT_BASE = 1 << 40
+
+
+def _split_byte(n: int) -> int:
+    """Offset of the byte every shard of a split into ``n`` locks shared."""
+    return _SPLIT_BASE + n
+
+
 def _ranges(shard: tuple[int, int]) -> list[tuple[int, int, bool]]:
     """(start, length, exclusive) locks of a run; length 0 = to the end of any file."""
     if shard[1] <= 1:
         return [(0, 0, True)]
-    return [(0, 1, False), (_shard_byte(shard), 1, True)]
+    return [(0, 1, False), (_shard_byte(shard), 1, True), (_split_byte(shard[1]), 1, False)]
+
+
+def _other_split(fd: int, n: int) -> int | None:
+    """PID of a process holding the byte of a split other than ``n`` (None when none does);
+    locks of this process are not reported (F_GETLK)."""
+    below = (_SPLIT_BASE, n)  # the split bytes of 0..n-1
+    above = (_split_byte(n) + 1, 0)  # those of n+1 and up, to the end of any file
+    for start, length in (below, above):
+        if pid := _holder(fd, start, length, exclusive=True):
+            return pid
+    return None
 
 
 def _holder(fd: int, start: int, length: int, exclusive: bool) -> int | None:
@@ -102,6 +127,12 @@ def _acquire(path: Path, what: str, folder: Path, shard: tuple[int, int]) -> int
                         f"{what}: '{folder}' is in use by another run ({by} holds "
                         f"'{path}'); wait for it to end, or use another folder"
                     ) from None
+            if shard[1] > 1 and (pid := _other_split(fd, shard[1])):
+                raise FolderInUse(
+                    f"{what}: '{folder}' is in use by a shard of another split (process {pid} "
+                    f"holds '{path}'; this run is a shard of {shard[1]}); give every shard the "
+                    "same N, or use another folder"
+                )
         except BaseException:
             os.close(fd)
             raise

@@ -13,12 +13,15 @@ import pytest
 import torch
 from conftest import invoke_main
 from test_bench_hardening import assert_bench_error, write_checkpoint
+from test_reliability import hold_lock, kill_9
 
 from benchmark import cli
 from benchmark.core import registry, runfolder
 from benchmark.flight import run as flight_run
 from benchmark.flight.simulate import FlightConfig, oracle
 from benchmark.flight.sources import Scored
+from stillbox_gen.layout import LOCK_FILE
+from stillbox_gen.live import WorkerDied, WorkerHung
 
 FAST = ("--renderer", "analytic", "--res", "32", "--quiet")
 SUMMARY_KEYS = {
@@ -84,6 +87,41 @@ def test_fly_compare_prints_and_writes_one_row_per_run(runs, tmp_path):
     assert float(rows[1]["collided"]) == 2 and float(rows[0]["depth_mae_m"]) == 0
     bad = invoke_main(cli.main, "fly-compare", runs / "oracle", tmp_path)
     assert_bench_error(bad, "RUN", "summary.json")
+
+
+def test_fly_compare_refuses_a_second_writer_of_its_folder(runs, tmp_path):
+    """fly-compare holds the lock of the folder of OUT.md and OUT.csv, as report does: while
+    another process holds it, one line naming --out and the holder, nothing written; once it is
+    free, the same command writes both files and leaves no lock file."""
+    out = tmp_path / "tables"
+    out.mkdir()
+    args = ("fly-compare", runs / "oracle", runs / "constant", "--out", out / "table")
+    holder = hold_lock(out)
+    try:
+        proc = invoke_main(cli.main, *args)
+        assert_bench_error(proc, f"--out: '{out}' is in use by another run (process {holder.pid}")
+        assert [p.name for p in out.iterdir()] == [LOCK_FILE]
+    finally:
+        kill_9(holder)
+    assert invoke_main(cli.main, *args).returncode == 0
+    assert sorted(p.name for p in out.iterdir()) == ["table.csv", "table.md"]
+
+
+@pytest.mark.parametrize("error", [WorkerDied, WorkerHung])
+def test_a_dead_or_hung_blender_worker_is_one_line(tmp_path, monkeypatch, error):
+    """The live Blender worker gone mid-flight (died, or hung and stopped by LiveRenderer's
+    timeout): one line naming it and how to continue, exit code 1, no traceback."""
+
+    def fly_run(*args, **kwargs):
+        raise error("the live Blender worker (pid 1) gave no answer")
+
+    monkeypatch.setattr(flight_run, "fly_run", fly_run)
+    proc = fly("--depth", "oracle", "--episodes", "1", "--out", tmp_path / "run", *FAST)
+    assert proc.returncode == 1, proc.stderr
+    assert proc.stderr.splitlines() == [
+        "stillbox-bench: failed: the live Blender worker (pid 1) gave no answer; "
+        "continue with --resume --out <run>"
+    ]
 
 
 def test_a_run_cut_short_resumes_per_episode(runs, tmp_path):

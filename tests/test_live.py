@@ -15,7 +15,7 @@ from stillbox_gen import camera, config, formats, layout
 from stillbox_gen.config import DatasetConfig
 from stillbox_gen.dataset import Dataset
 from stillbox_gen.errors import ConfigError
-from stillbox_gen.live import LiveRenderer, WorkerDied
+from stillbox_gen.live import LiveRenderer, WorkerDied, WorkerHung
 from stillbox_gen.record import SceneSpec, spec_from_record
 from stillbox_gen.scene import sample_scene
 from stillbox_gen.worker_setup import NO_BLENDER
@@ -148,6 +148,29 @@ def test_a_dead_worker_is_an_error_not_a_hang():
         with pytest.raises(WorkerDied):  # and stays an error
             live.load(spec)
         assert not os.path.exists(live._folder)  # its temp folder (Blender's too) is gone
+    finally:
+        live.close()
+
+
+@pytest.mark.render
+def test_a_hung_worker_is_stopped_after_the_timeout():
+    """A worker that lives but does not answer (here: stopped with SIGSTOP) is killed after
+    ``timeout`` seconds and the request raises WorkerHung naming it; later calls raise too."""
+    spec = _empty_box_scene(8, 8)
+    live = LiveRenderer(DatasetConfig(), threads=1)  # Blender's start may be slow on a busy CPU
+    try:
+        live.load(spec)
+        live.render(_pose(0.0, 0.0, [0.0, 0.0, 0.0]))
+        live.timeout = 2.0
+        os.kill(live.pid, signal.SIGSTOP)
+        t0 = time.monotonic()
+        with pytest.raises(WorkerHung, match=r"no answer to a 'render' request in 2 s"):
+            live.render(_pose(0.0, 0.0, [0.0, 0.0, 0.0]))
+        assert 2.0 <= time.monotonic() - t0 < 10
+        assert live._proc.poll() is not None  # killed, not left stopped
+        with pytest.raises(WorkerHung):
+            live.load(spec)
+        assert not os.path.exists(live._folder)
     finally:
         live.close()
 

@@ -87,6 +87,38 @@ def test_shards_of_one_split_share_a_folder_but_no_shard_runs_twice(tmp_path):
     assert list(out.iterdir()) == []  # the stale lock file taken over, then deleted
 
 
+@pytest.mark.parametrize("held, wanted", [("0/2", (1, 4)), ("3/4", (0, 2)), ("1/3", (2, 5))])
+def test_shards_of_two_different_splits_are_refused(tmp_path, held, wanted):
+    """A shard of a split into N beside a shard of another split (their scenes overlap): one
+    line naming the folder and the holder, nothing written; a shard of the held split is still
+    admitted beside it."""
+    out = tmp_path / "new"
+    holder = hold_lock(out, held)
+    try:
+        with (
+            pytest.raises(FolderInUse, match=f"another split \\(process {holder.pid} holds"),
+            folder_lock(out, "--out", wanted),
+        ):
+            pass
+        assert [p.name for p in out.iterdir()] == [LOCK_FILE]
+        n = int(held.split("/")[1])
+        with folder_lock(out, "--out", ((int(held.split("/")[0]) + 1) % n, n)):
+            pass
+    finally:
+        kill_9(holder)
+
+
+def test_shard_bytes_stay_below_the_split_bytes():
+    """The exclusive byte of every shard up to MAX_SHARDS lies below the split bytes, and the
+    command line refuses a larger N in one line."""
+    from stillbox_gen import lock
+
+    top = lock.MAX_SHARDS
+    assert lock._shard_byte((top - 1, top)) < lock._split_byte(1)
+    proc = invoke_cli("--res", 64, "--scenes", 2, "--shard", f"0/{top + 1}", "--out", "x")
+    assert_user_error(proc, "--shard: need 1 <= N <= 1,000,000")
+
+
 def test_second_writer_of_a_dataset_is_refused_and_a_killed_holder_blocks_nothing(
     default_dataset, tmp_path
 ):

@@ -20,6 +20,7 @@ if importlib.util.find_spec("torch") is None:  # installed without the `bench` e
 import click  # noqa: E402 - after the check, which must run before torch is imported below
 
 from stillbox_gen.formats import disk_full_message, is_disk_full  # noqa: E402
+from stillbox_gen.live import WorkerDied  # noqa: E402
 
 # the chapters' training steps, registered in benchmark.engine.steps when imported (the depth and
 # flow steps are the engine's own: engine.pair_step)
@@ -84,6 +85,9 @@ def main(argv: list[str] | None = None) -> None:
     except (click.exceptions.Abort, KeyboardInterrupt):
         click.echo("stillbox-bench: interrupted; continue with --resume --out <run>", err=True)
         sys.exit(130)
+    except WorkerDied as e:  # fly's Blender worker died or hung: its finished episodes are kept
+        click.echo(f"stillbox-bench: failed: {e}; continue with --resume --out <run>", err=True)
+        sys.exit(1)
     except OSError as e:
         if not is_disk_full(e):
             raise

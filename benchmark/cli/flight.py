@@ -26,6 +26,7 @@ from .options import (
     dataset_dir,
     int_option,
     is_default,
+    locked_out,
     setting_option,
     torch_device,
     training_settings,
@@ -357,9 +358,10 @@ def fly_compare(runs: tuple[Path, ...], out: Path | None) -> None:
     paths = runfolder.comparison_paths(out)
     check_comparison_out(out)
     md = comparison_markdown(rows)
-    try:
-        runfolder.write_comparison(out, md, runfolder.csv_text(rows))
-    except ValueError as e:
-        raise user_error(e) from None
+    with locked_out(out.parent):  # the folder of OUT.md and OUT.csv, as report's
+        try:
+            runfolder.write_comparison(out, md, runfolder.csv_text(rows))
+        except ValueError as e:
+            raise user_error(e) from None
     click.echo(md, nl=False)
     click.echo(f"table in {paths['md']} and {paths['csv']}")
