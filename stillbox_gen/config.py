@@ -25,11 +25,12 @@ from .arguments import parse_point, parse_resolution, parse_shares
 from .conventions import LIMITS
 from .errors import ConfigError
 from .layout import FLOW_FORMATS
+from .shapes import SHAPES
 
-PRIMITIVE_KINDS = ("cube", "sphere", "cone", "torus", "cylinder", "slab")  # objects.kinds default
-# Every shape kind (shapes.py): the default draw above, plus "plane" (a flat rectangle, e.g. the
-# ground of the toy "horizon" scene), which random scenes draw only when objects.kinds names it.
-SHAPE_KINDS = (*PRIMITIVE_KINDS, "plane")
+# Every shape kind (the table shapes.SHAPES); random scenes draw the ``random`` ones by default
+# (objects.kinds), the others (the flat "plane", ground of the toy "horizon" scene) when named.
+SHAPE_KINDS = tuple(SHAPES)
+PRIMITIVE_KINDS = tuple(k for k, s in SHAPES.items() if s.random)  # objects.kinds default
 # Fixed scenes (objects.fixed): a named layout built by scene.FIXED_SCENES instead of random
 # primitives; "flower" and "horizon" are the toy problems of thesis 4.6.1 (Fig. 4.11).
 FIXED_SCENES = ("flower", "horizon")

@@ -127,29 +127,6 @@ def sample_material(
     )
 
 
-def primitive_dimensions(rng: np.random.Generator, kind: str, size: float) -> list[float]:
-    """Local bounding box of a primitive whose largest extent is ``size`` metres."""
-    a = rng.uniform(0.5, 1.0)
-    if kind == "cube":
-        d = rng.uniform(0.5, 1.0, size=3)
-        return _plain_floats(size * d / d.max())
-    if kind == "slab":
-        return _plain_floats([size, size * a, size * rng.uniform(0.03, 0.1)])
-    if kind == "sphere":
-        return [size] * 3
-    if kind in ("cylinder", "cone"):
-        if rng.random() < 0.5:
-            return [size, size, size * a]
-        return [size * a, size * a, size]
-    if kind == "torus":
-        ratio = rng.uniform(0.15, 0.5)  # minor / major radius
-        major = size / 2 / (1 + ratio)
-        return [size, size, 2 * major * ratio]
-    if kind == "plane":
-        return [size, float(size * a), 0.0]
-    raise ValueError(kind)
-
-
 def sample_distance(rng: np.random.Generator, r: tuple[float, float], law: str) -> float:
     """Distance in metres within ``r``: "uniform" in distance, or "volume", uniform in the volume
     of the shell (density proportional to distance squared, so more objects far than near)."""
@@ -216,7 +193,7 @@ def sample_primitive(
     o = cfg.objects
     kind = o.kinds[int(rng.integers(len(o.kinds)))]
     size = _uniform(rng, o.size_range)
-    dims = primitive_dimensions(rng, kind, size)
+    dims = shapes.random_dimensions(rng, kind, size)
     distance = sample_distance(rng, o.distance_range, o.distance_law)
     if rng.random() < o.behind_fraction:
         ray = camera.random_unit_vector(rng)

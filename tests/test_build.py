@@ -29,7 +29,7 @@ def pydata_mesh(kind, dims, inward):
         faces = [tuple(reversed(f)) for f in faces]
     me = bpy.data.meshes.new("reference")
     me.from_pydata(verts.tolist(), [], faces)
-    if kind in build.SMOOTH_KINDS:
+    if shapes.shape(kind).smooth:
         me.shade_smooth()
         me.set_sharp_from_angle(angle=math.radians(45))
     else:

@@ -15,7 +15,6 @@ from mathutils import Matrix, Quaternion, Vector
 
 from .. import camera, photos, shapes
 
-SMOOTH_KINDS = {"sphere", "torus", "cylinder", "cone"}
 _PATTERN_NODES = {
     "noise": ("ShaderNodeTexNoise", "Fac"),
     "voronoi": ("ShaderNodeTexVoronoi", "Distance"),
@@ -286,13 +285,12 @@ def _photo(name: str, textures_dir: str | None, span_m: float, footprint: tuple[
 
 def make_mesh_object(name: str, kind: str, dims, inward: bool = False):
     """A linked object with the mesh of a primitive (shapes.mesh; dims in metres), its faces
-    flat-shaded, or smooth with edges sharper than 45 degrees kept sharp (SMOOTH_KINDS);
+    flat-shaded, or smooth with edges sharper than 45 degrees kept sharp (the shape's ``smooth``);
     ``inward`` reverses the faces (the walls are seen from inside)."""
     verts, faces = shapes.mesh(kind, dims)
-    me = _mesh(
-        name, verts, *_topology(kind, inward, faces, len(verts)), flat=kind not in SMOOTH_KINDS
-    )
-    if kind in SMOOTH_KINDS:
+    smooth = shapes.shape(kind).smooth
+    me = _mesh(name, verts, *_topology(kind, inward, faces, len(verts)), flat=not smooth)
+    if smooth:
         me.set_sharp_from_angle(angle=math.radians(45))
     obj = bpy.data.objects.new(name, me)
     bpy.context.scene.collection.objects.link(obj)
