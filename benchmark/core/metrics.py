@@ -15,7 +15,9 @@ Conventions
 
 from __future__ import annotations
 
+import functools
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -30,52 +32,120 @@ SENSING_RANGE = 15.0
 
 
 @dataclass(frozen=True)
+class Pixels:
+    """The terms every metric of one batch is computed from: ``pred`` (clamped) and ``gt``
+    (clipped; 1 m on invalid pixels) as ``(B, H, W)`` float64, ``valid`` the scored pixels,
+    ``near`` the valid ones with ``gt <= sensing_range``, and their differences."""
+
+    pred: torch.Tensor
+    gt: torch.Tensor
+    valid: torch.Tensor
+    near: torch.Tensor
+    sensing_range: float
+
+    @functools.cached_property
+    def diff(self) -> torch.Tensor:
+        return self.pred - self.gt
+
+    @functools.cached_property
+    def log_diff(self) -> torch.Tensor:
+        return torch.log(self.pred) - torch.log(self.gt)
+
+    @functools.cached_property
+    def ratio(self) -> torch.Tensor:
+        return torch.maximum(self.pred / self.gt, self.gt / self.pred)
+
+    def mean(self, values: torch.Tensor, among: torch.Tensor | None = None) -> torch.Tensor:
+        """(B,) mean of ``values`` over the pixels ``among`` (default: the valid ones) of each
+        image; NaN for an image without such a pixel."""
+        among = self.valid if among is None else among
+        total = torch.where(among, values, torch.zeros_like(values)).sum(dim=(1, 2))
+        return total / among.sum(dim=(1, 2)).to(torch.float64)  # 0/0 = NaN: no such pixel
+
+
+@dataclass(frozen=True)
 class Metric:
     """One per-image measure: ``label`` its name in the thesis' tables (Table 2.3), ``field``
     the name the monocular-depth literature reports it under (KITTI devkit, Monodepth2; "" when
     only the thesis uses it), ``unit`` ("m", or "" for none), ``formula`` in words and maths
-    (θ̃ prediction, θ ground truth, E the mean over the scored pixels of one image)."""
+    (θ̃ prediction, θ ground truth, E the mean over the scored pixels of one image), and
+    ``compute``: its ``(B,)`` float64 values from a batch's :class:`Pixels`."""
 
     label: str
     field: str
     unit: str
     formula: str
+    compute: Callable[[Pixels], torch.Tensor]
+
+
+def _within(delta: float) -> Callable[[Pixels], torch.Tensor]:
+    """P_delta: the share of pixels whose ratio to the truth is below ``delta``."""
+    return lambda t: t.mean((t.ratio < delta).to(torch.float64))
+
+
+def _silog(t: Pixels) -> torch.Tensor:
+    # variance form of the KITTI devkit; clamped at 0 against rounding when e is constant
+    spread = t.mean(t.log_diff.square()) - t.mean(t.log_diff).square()
+    return 100 * spread.clamp(min=0).sqrt()
 
 
 #: Every depth measure, in table order: the thesis' eight, the field's three others, then the
-#: obstacle-avoidance pair. The one place metrics are defined; reports derive their columns here.
+#: obstacle-avoidance pair. The one place metrics are defined (a new one is one entry): the
+#: per-image scores, the reports and the CSVs derive from it.
 METRIC_TABLE: dict[str, Metric] = {
-    "mae": Metric("MAE", "", "m", "MAE = E|θ̃ − θ|  (metres)"),
-    "mre": Metric("MRE", "AbsRel", "", "MRE = AbsRel = E|θ̃ − θ| / θ"),
-    "mle": Metric("MLE", "", "", "MLE = E|log θ̃ − log θ|  (natural log)"),
-    "sae": Metric("SAE", "RMSE", "m", "SAE = RMSE = sqrt(E(θ̃ − θ)²)  (metres)"),
-    "sle": Metric("SLE", "RMSE log", "", "SLE = RMSE log = sqrt(E(log θ̃ − log θ)²)  (natural log)"),
-    "p1.25": Metric("P1.25", "δ<1.25", "", "P_1.25 = δ<1.25 = E[max(θ̃/θ, θ/θ̃) < 1.25]"),
-    "p1.25^2": Metric("P1.25²", "δ<1.25²", "", "P_1.25² = E[max(θ̃/θ, θ/θ̃) < 1.25²]"),
-    "p1.25^3": Metric("P1.25³", "δ<1.25³", "", "P_1.25³ = E[max(θ̃/θ, θ/θ̃) < 1.25³]"),
-    "sqrel": Metric("SqRel", "SqRel", "m", "SqRel = E(θ̃ − θ)² / θ  (metres)"),
-    "log10": Metric("log10", "log10", "", "log10 = E|log10 θ̃ − log10 θ|"),
+    "mae": Metric(
+        "MAE", "", "m", "MAE = E|θ̃ − θ|  (metres)", lambda t: t.mean(t.diff.abs())
+    ),
+    "mre": Metric(
+        "MRE", "AbsRel", "", "MRE = AbsRel = E|θ̃ − θ| / θ", lambda t: t.mean(t.diff.abs() / t.gt)
+    ),
+    "mle": Metric(
+        "MLE", "", "", "MLE = E|log θ̃ − log θ|  (natural log)",
+        lambda t: t.mean(t.log_diff.abs()),
+    ),
+    "sae": Metric(
+        "SAE", "RMSE", "m", "SAE = RMSE = sqrt(E(θ̃ − θ)²)  (metres)",
+        lambda t: t.mean(t.diff.square()).sqrt(),
+    ),
+    "sle": Metric(
+        "SLE", "RMSE log", "", "SLE = RMSE log = sqrt(E(log θ̃ − log θ)²)  (natural log)",
+        lambda t: t.mean(t.log_diff.square()).sqrt(),
+    ),
+    "p1.25": Metric(
+        "P1.25", "δ<1.25", "", "P_1.25 = δ<1.25 = E[max(θ̃/θ, θ/θ̃) < 1.25]", _within(1.25)
+    ),
+    "p1.25^2": Metric(
+        "P1.25²", "δ<1.25²", "", "P_1.25² = E[max(θ̃/θ, θ/θ̃) < 1.25²]", _within(1.25**2)
+    ),
+    "p1.25^3": Metric(
+        "P1.25³", "δ<1.25³", "", "P_1.25³ = E[max(θ̃/θ, θ/θ̃) < 1.25³]", _within(1.25**3)
+    ),
+    "sqrel": Metric(
+        "SqRel", "SqRel", "m", "SqRel = E(θ̃ − θ)² / θ  (metres)",
+        lambda t: t.mean(t.diff.square() / t.gt),
+    ),
+    "log10": Metric(
+        "log10", "log10", "", "log10 = E|log10 θ̃ − log10 θ|",
+        lambda t: t.mean(t.log_diff.abs()) / math.log(10),
+    ),
     "silog": Metric(
-        "SILog",
-        "SILog",
-        "",
+        "SILog", "SILog", "",
         "SILog = 100 · sqrt(E e² − (E e)²), e = log θ̃ − log θ (natural log; KITTI devkit)",
+        _silog,
     ),
     "missed_near": Metric(
-        "missed",
-        "",
-        "",
+        "missed", "", "",
         f"missed = share of the pixels with θ ≤ r estimated beyond r (r = {SENSING_RANGE:g} m: "
         "obstacles not seen); mean over the images that have such pixels",
+        lambda t: t.mean((t.pred > t.sensing_range).to(torch.float64), t.near),
     ),
     "phantom_near": Metric(
-        "phantom",
-        "",
-        "",
+        "phantom", "", "",
         f"phantom = share of the pixels with θ > r estimated within r (r = {SENSING_RANGE:g} m: "
         "obstacles that are not there); mean over the images that have such pixels",
+        lambda t: t.mean((t.pred <= t.sensing_range).to(torch.float64), t.valid & ~t.near),
     ),
-}
+}  # fmt: skip
 
 THESIS_METRICS = ("mae", "mre", "mle", "sae", "sle", "p1.25", "p1.25^2", "p1.25^3")
 #: measures over a subset of an image's pixels: NaN for an image without any, which
@@ -85,8 +155,6 @@ RANGE_METRICS = ("missed_near", "phantom_near")
 METRICS = tuple(METRIC_TABLE)
 DEPTH_METRICS = tuple(m for m in METRICS if m not in RANGE_METRICS)
 
-#: threshold δ of each precision metric P_δ
-DELTAS = {"p1.25": 1.25, "p1.25^2": 1.25**2, "p1.25^3": 1.25**3}
 
 FORMULAS: dict[str, str] = {name: m.formula for name, m in METRIC_TABLE.items()}
 """Each metric in words/maths, by name."""
@@ -152,34 +220,9 @@ def image_metrics(
     # masked out of every mean below.
     gt = torch.where(valid, gt.clamp(max=max_depth), torch.ones_like(gt))
 
-    count = valid.sum(dim=(1, 2))
-
-    def mean(values: torch.Tensor, among: torch.Tensor = valid) -> torch.Tensor:
-        total = torch.where(among, values, torch.zeros_like(values)).sum(dim=(1, 2))
-        return total / among.sum(dim=(1, 2)).to(torch.float64)  # 0/0 = NaN: no such pixel
-
-    diff = pred - gt
-    log_diff = torch.log(pred) - torch.log(gt)
-    ratio = torch.maximum(pred / gt, gt / pred)
-    near = valid & (gt <= sensing_range)
-
-    out = {
-        "mae": mean(diff.abs()),
-        "mre": mean(diff.abs() / gt),
-        "mle": mean(log_diff.abs()),
-        "sae": mean(diff.square()).sqrt(),
-        "sle": mean(log_diff.square()).sqrt(),
-    }
-    for name, delta in DELTAS.items():
-        out[name] = mean((ratio < delta).to(torch.float64))
-    out["sqrel"] = mean(diff.square() / gt)
-    out["log10"] = out["mle"] / math.log(10)
-    # variance form of the KITTI devkit; clamped at 0 against rounding when e is constant
-    spread = mean(log_diff.square()) - mean(log_diff).square()
-    out["silog"] = 100 * spread.clamp(min=0).sqrt()
-    out["missed_near"] = mean((pred > sensing_range).to(torch.float64), near)
-    out["phantom_near"] = mean((pred <= sensing_range).to(torch.float64), valid & ~near)
-    out["valid_pixels"] = count.to(torch.int64)
+    pixels = Pixels(pred, gt, valid, valid & (gt <= sensing_range), sensing_range)
+    out = {name: m.compute(pixels) for name, m in METRIC_TABLE.items()}
+    out["valid_pixels"] = valid.sum(dim=(1, 2)).to(torch.int64)
     return out
 
 
