@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import csv
 import json
+import math
 import re
 from pathlib import Path
 
@@ -51,7 +52,8 @@ def _agree(quoted: list[float], measured: list[float]) -> None:
 def test_scaling_table_and_fits_match_results_csv_and_fit_json():
     page = RESULTS / "scaling" / "README.md"
     runs = {int(r["samples"]): r for r in _csv(RESULTS / "scaling" / "results.csv")}
-    rows = _rows(page, r"[\d,]+")
+    held_out = 1_321_760  # the longest run: not in the fit (its own test below)
+    rows = [r for r in _rows(page, r"[\d,]+") if int(r[0].replace(",", "")) != held_out]
     assert [int(r[0].replace(",", "")) for r in rows] == sorted(runs)
     for cells in rows:
         run = runs[int(cells[0].replace(",", ""))]
@@ -268,3 +270,21 @@ def test_unsup_128_tables_match_their_outputs():
     for label, cells in quoted.items():
         depth = "the checkpoint's depth" if label == "the checkpoint's own" else label
         _agree(_numbers(" ".join(cells[1:])), printed[depth])
+
+
+def test_longest_scaling_run_matches_its_summary():
+    """The longest run's row on the scaling page is its committed summary.json."""
+    page = (RESULTS / "scaling" / "README.md").read_text()
+    section = page.split("## The longest run")[1]
+    row = next(line for line in section.splitlines() if line.startswith("| 1,321,760 |"))
+    s = json.loads((RESULTS / "scaling" / "outputs" / "ours-full55-s0-t2.summary.json").read_text())
+    assert s["training_state"]["global_step"] * 32 == 1_321_760
+    m = s["metrics"]
+    cells = row.strip("|").split("|")
+    _agree(_numbers("|".join(cells[1:5])), [m["mae"], m["mre"], m["mle"], m["p1.25"]])
+    assert float(cells[5]) == round(m["mae"] / 21.85, 2)
+    fits = json.loads((RESULTS / "scaling" / "fit.json").read_text())["fits"].values()
+    predicted = [
+        f["floor"] + math.exp(f["intercept"] + f["slope"] * math.log(1_321_760)) for f in fits
+    ]
+    _agree(_numbers(cells[6]), predicted)
