@@ -181,15 +181,15 @@ class LiveRenderer:
         _, kind, message = answer
         raise (ConfigError if kind == "config" else RuntimeError)(message)
 
-    def _hung(self, what: object) -> WorkerHung:
+    def _hung(self, what: str) -> WorkerHung:
         self._proc.kill()
         self._proc.wait()
-        self._gone = WorkerHung(
-            f"the live Blender worker (pid {self._proc.pid}) gave no answer to a {what!r} "
-            f"request in {self.timeout:g} s and was stopped"
+        return self._gone_with(
+            WorkerHung(
+                f"the live Blender worker (pid {self._proc.pid}) gave no answer to a {what!r} "
+                f"request in {self.timeout:g} s and was stopped"
+            )
         )
-        self.close()
-        return WorkerHung(str(self._gone))
 
     def _died(self) -> WorkerDied:
         try:
@@ -197,9 +197,15 @@ class LiveRenderer:
         except subprocess.TimeoutExpired:  # its output closed but it lives on: end it
             self._proc.kill()
             code = self._proc.wait()
-        self._gone = WorkerDied(
-            f"the live Blender worker (pid {self._proc.pid}) died (exit code {code}); "
-            "its stderr above may say why"
+        return self._gone_with(
+            WorkerDied(
+                f"the live Blender worker (pid {self._proc.pid}) died (exit code {code}); "
+                "its stderr above may say why"
+            )
         )
+
+    def _gone_with(self, error: WorkerDied) -> WorkerDied:
+        """Close for good: every later call raises a copy of ``error``; returns one to raise."""
+        self._gone = error
         self.close()
-        return WorkerDied(str(self._gone))
+        return type(error)(str(error))

@@ -225,6 +225,8 @@ def test_requests_the_driver_refuses():
 def test_an_unknown_device_is_refused_before_a_worker_starts():
     with pytest.raises(ConfigError, match="--device"):
         LiveRenderer(DatasetConfig(), device="tpu")
+    with pytest.raises(ValueError, match="timeout must be > 0 seconds"):
+        LiveRenderer(DatasetConfig(), timeout=0)
 
 
 def test_without_blender_one_line_naming_the_extra(monkeypatch):

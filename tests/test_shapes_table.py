@@ -48,8 +48,8 @@ def test_mesh_vertices_lie_on_the_signed_distance_surface(kind):
 
 @pytest.mark.parametrize("kind", KINDS)
 def test_inside_points_are_negative_and_far_points_positive(kind):
-    """The centroid of the mesh's vertices of a solid is inside (< 0; a torus's centre and a
-    plane are not solid there), a point 10 extents away is outside by about that distance."""
+    """The local origin of a solid is inside (< 0; a torus's centre and a plane are not solid
+    there); a point 20 m along x, 10 extents away, is outside by about 19 m."""
     dims = _dims(kind)
     far = np.array([[20.0, 0.0, 0.0]])
     assert shapes.signed_distance(kind, dims, far)[0] == pytest.approx(19.0, abs=0.2)

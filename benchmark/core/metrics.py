@@ -40,8 +40,11 @@ class Pixels:
     pred: torch.Tensor
     gt: torch.Tensor
     valid: torch.Tensor
-    near: torch.Tensor
     sensing_range: float
+
+    @functools.cached_property
+    def near(self) -> torch.Tensor:
+        return self.valid & (self.gt <= self.sensing_range)
 
     @functools.cached_property
     def diff(self) -> torch.Tensor:
@@ -220,7 +223,7 @@ def image_metrics(
     # masked out of every mean below.
     gt = torch.where(valid, gt.clamp(max=max_depth), torch.ones_like(gt))
 
-    pixels = Pixels(pred, gt, valid, valid & (gt <= sensing_range), sensing_range)
+    pixels = Pixels(pred, gt, valid, sensing_range)
     out = {name: m.compute(pixels) for name, m in METRIC_TABLE.items()}
     out["valid_pixels"] = valid.sum(dim=(1, 2)).to(torch.int64)
     return out
