@@ -13,3 +13,11 @@ class ConfigError(ValueError):
 class DatasetError(ValueError):
     """A dataset, or one of its files, that cannot be read; the message names the file (or the
     record) and what is wrong with it. The command lines print it as a one-line user error."""
+
+
+class WorkerDied(RuntimeError):
+    """The live Blender worker (stillbox_gen.live) ended while the driver still needed it."""
+
+
+class WorkerHung(WorkerDied):
+    """The live Blender worker gave no answer in time; it was killed."""

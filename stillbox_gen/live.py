@@ -30,7 +30,7 @@ import tempfile
 import numpy as np
 
 from .config import DEVICES, DatasetConfig
-from .errors import ConfigError
+from .errors import ConfigError, WorkerDied, WorkerHung
 from .record import SceneSpec
 from .worker_setup import require_blender
 
@@ -38,14 +38,6 @@ CLOSE_SECONDS = 10.0  # how long close() waits for the worker to end before kill
 #: how long one request may wait for the worker's first byte of answer (s): far above Blender's
 #: start (seconds) and a frame of the largest closed-loop sizes; a worker this late is hung
 ANSWER_SECONDS = 600.0
-
-
-class WorkerDied(RuntimeError):
-    """The Blender worker process ended while the driver still needed it."""
-
-
-class WorkerHung(WorkerDied):
-    """The Blender worker gave no answer in time; it was killed."""
 
 
 class LiveRenderer:

@@ -19,8 +19,8 @@ if importlib.util.find_spec("torch") is None:  # installed without the `bench` e
 
 import click  # noqa: E402 - after the check, which must run before torch is imported below
 
+from stillbox_gen.errors import WorkerDied  # noqa: E402
 from stillbox_gen.formats import disk_full_message, is_disk_full  # noqa: E402
-from stillbox_gen.live import WorkerDied  # noqa: E402
 
 # the chapters' training steps, registered in benchmark.engine.steps when imported (the depth and
 # flow steps are the engine's own: engine.pair_step)
