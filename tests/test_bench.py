@@ -344,6 +344,9 @@ def test_oracle_flow_returns_ground_truth_and_constant_is_the_median(tiny_datase
     assert m["mae"] < 1e-4 and m["mre"] < 1e-5 and m["p1.25"] > 0.9999 and m["epe"] == 0
     assert not (oracle / "checkpoints").exists() and (oracle / "plots" / "samples.png").is_file()
     assert s["metrics_with_flow_noise"]["mae"] > 10 * m["mae"]
+    bands = [b for b in s["error_by_depth"] if b["pixels"]]  # exact depth in every band
+    assert len(bands) >= 2 and all(b["mae"] < 1e-3 for b in bands)
+    assert "Error by ground-truth depth" in (oracle / "summary.md").read_text()
     near = [b for b in s["error_by_foe_distance_with_flow_noise"] if b["pixels"] >= 10]
     assert near[0]["median_abs_err"] > near[-1]["median_abs_err"]  # worse near the FOE
     assert "Sensitivity" in (oracle / "summary.md").read_text()

@@ -11,6 +11,7 @@ import torch
 import torch.nn.functional as F
 
 from benchmark.core.metrics import (
+    DEPTH_BANDS,
     DEPTH_METRICS,
     METRICS,
     aggregate,
@@ -272,3 +273,25 @@ def test_upsample_to():
     assert up[0, 0, 0].item() == 0.0 and up[0, -1, -1].item() == 5.0
     with pytest.raises(ValueError):
         upsample_to(torch.ones(1, 4, 4), 8, 8)
+
+
+def test_error_by_depth_band_is_each_bands_pixels_alone():
+    """report.depth_bins: a band's MAE / MRE / MLE are those of its own pixels, worked by hand;
+    invalid ground truth (0, NaN) and a ground truth at the far bound (100 m) are in no band."""
+    from benchmark.engine.report import depth_bins, depth_table
+
+    gt = np.array([2.0, 5.0, 20.0, 30.0, 80.0, 100.0, 0.0, np.nan], np.float32)
+    pred = np.array([4.0, 5.0, 10.0, 60.0, 40.0, 1.0, 3.0, 3.0], np.float32)
+    rows = {(r["from_m"], r["to_m"]): r for r in depth_bins(gt, pred)}
+    assert list(rows) == list(DEPTH_BANDS)
+    near = rows[(0.0, 10.0)]  # errors 2 and 0 m, relative 1 and 0, log ln 2 and 0
+    assert near["pixels"] == 2 and near["mae"] == pytest.approx(1.0)
+    assert near["mre"] == pytest.approx(0.5) and near["mle"] == pytest.approx(math.log(2) / 2)
+    mid = rows[(10.0, 25.0)]
+    assert (mid["pixels"], mid["mae"], mid["mre"]) == (1, pytest.approx(10.0), pytest.approx(0.5))
+    assert rows[(25.0, 50.0)]["mle"] == pytest.approx(math.log(2))
+    far = rows[(50.0, 100.0)]
+    assert far["pixels"] == 1 and far["mae"] == pytest.approx(40.0)
+    empty = depth_bins(np.array([5.0], np.float32), np.array([5.0], np.float32))[3]
+    assert empty["pixels"] == 0 and empty["mae"] is None
+    assert "| [50, 100) | 0 | – | – | – |" in depth_table([empty])

@@ -288,3 +288,18 @@ def test_longest_scaling_run_matches_its_summary():
         f["floor"] + math.exp(f["intercept"] + f["slope"] * math.log(1_321_760)) for f in fits
     ]
     _agree(_numbers(cells[6]), predicted)
+
+
+def test_longest_scaling_runs_depth_bands_match_its_summary():
+    """The longest run's error by ground-truth depth on the scaling page is its summary.json's."""
+    page = (RESULTS / "scaling" / "README.md").read_text()
+    section = page.split("## The longest run")[1]
+    rows = [line for line in section.splitlines() if line.startswith("| [") and " m" not in line]
+    s = json.loads((RESULTS / "scaling" / "outputs" / "ours-full55-s0-t2.summary.json").read_text())
+    bands = s["error_by_depth"]
+    assert len(rows) == len(bands) == 4
+    for row, band in zip(rows, bands, strict=True):
+        cells = row.strip("|").split("|")
+        assert cells[0].strip() == f"[{band['from_m']:g}, {band['to_m']:g})"
+        assert int(cells[1].replace(",", "")) == band["pixels"]
+        _agree(_numbers("|".join(cells[2:])), [band["mae"], band["mre"], band["mle"]])

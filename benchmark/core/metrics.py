@@ -27,6 +27,9 @@ import torch.nn.functional as F
 from stillbox_gen.conventions import MAX_DEPTH  # metres: predictions clamped, ground truth clipped
 
 MIN_DEPTH = 0.1  # metres: predictions are clamped up to this before scoring (thesis 3.6.2)
+#: bands [lo, hi) of ground-truth depth (metres) that reports break errors down by (a ground
+#: truth clipped to exactly MAX_DEPTH, a sliver of sky, is in none)
+DEPTH_BANDS = ((0.0, 10.0), (10.0, 25.0), (25.0, 50.0), (50.0, 100.0))
 #: metres: the range within which depth becomes obstacles (the closed-loop flight's sensing range)
 SENSING_RANGE = 15.0
 

@@ -97,6 +97,38 @@ def foe_bins(distance: np.ndarray, abs_err: np.ndarray) -> list[dict]:
     return rows
 
 
+def depth_bins(gt: np.ndarray, pred: np.ndarray) -> list[dict]:
+    """Error by ground-truth depth (metres), over the scored pixel subsample: per band
+    ``[lo, hi)`` of metrics.DEPTH_BANDS the pixel count, MAE (m), MRE and MLE (per pixel, not
+    per image: a band holds few pixels of most images)."""
+    rows = []
+    for lo, hi in metrics.DEPTH_BANDS:
+        sel = (gt > 0) & (gt >= lo) & (gt < hi) & np.isfinite(pred)  # valid ground truth
+        g, p = gt[sel].astype(np.float64), pred[sel].astype(np.float64)
+        n = int(sel.sum())
+        rows.append(
+            {
+                "from_m": lo,
+                "to_m": hi,
+                "pixels": n,
+                "mae": float(np.abs(p - g).mean()) if n else None,
+                "mre": float((np.abs(p - g) / g).mean()) if n else None,
+                "mle": float(np.abs(np.log(p) - np.log(g)).mean()) if n else None,
+            }
+        )
+    return rows
+
+
+def depth_table(rows: list[dict]) -> str:
+    lines = ["| ground-truth depth (m) | pixels | MAE (m) | MRE | MLE |", "|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(
+            f"| [{r['from_m']:g}, {r['to_m']:g}) | {r['pixels']} | {_fmt(r['mae'])} | "
+            f"{_fmt(r['mre'])} | {_fmt(r['mle'])} |"
+        )
+    return "\n".join(lines)
+
+
 def foe_table(rows: list[dict]) -> str:
     lines = [
         "| distance to FOE (px) | pixels | MAE (m) | median abs. error (m) |",
@@ -183,6 +215,7 @@ def summarize(
         "averaging_rule": metrics.AVERAGING_RULE,
         "scale": scale,
         "error_by_foe_distance": foe_bins(px["foe_distance"], px["abs_err"]) if px else [],
+        "error_by_depth": depth_bins(px["gt"], px["pred"]) if px else [],
         "thesis_reference_64px": THESIS_64.get(model.removesuffix("-tiny")),
     }
 
@@ -216,6 +249,16 @@ def summary_markdown(summary: dict) -> str:
         "",
         foe_table(summary["error_by_foe_distance"]),
         "",
+        *(
+            [
+                "Error by ground-truth depth (the same pixels, per pixel):",
+                "",
+                depth_table(summary["error_by_depth"]),
+                "",
+            ]
+            if summary.get("error_by_depth")
+            else []
+        ),
         "Plots: `plots/` (error vs depth, vs distance to the focus of expansion, vs estimate, "
         "samples, learning curve). Per-pair metrics: `per_sample.csv`.",
     ]

@@ -53,7 +53,7 @@ from ..engine.frame_depth import frame_depth, network_outputs
 from ..engine.network import depth_network
 from ..engine.runner import check_frame_size, frame_size
 
-BANDS = ((0.0, 10.0), (10.0, 25.0), (25.0, 50.0), (50.0, 100.0))  # ground-truth depth, metres
+BANDS = metrics.DEPTH_BANDS  # ground-truth depth, metres
 SCORES = ("mae", "mre", "mle")
 DEFAULT_SHIFT_COUNTS = (1, 2, 3)
 FIGURE = "mre_vs_time.png"
