@@ -10,7 +10,7 @@ STAMP  := $(VENV)/.installed
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
-	$(BIN)/pip install --quiet -e '.[gen,bench,toy,dev,ray,export]'
+	$(BIN)/pip install --quiet -e '.[gen,bench,tb,toy,dev,ray,export]'
 	touch $(STAMP)
 
 install: $(STAMP)

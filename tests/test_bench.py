@@ -149,7 +149,7 @@ def test_smoke_run_writes_the_run_folder_and_resume_is_exact(tiny_dataset, tmp_p
         "plots/learning_curve.png",
     ):
         assert (full / name).is_file(), name
-    assert list((full / "tb").glob("events.out.tfevents.*"))
+    assert list((full / "tb").glob("events.out.tfevents.*")) or not runfolder.has_tensorboard()
     layout = {v for k, v in vars(runfolder).items() if k.isupper() and isinstance(v, str)}
     assert {p.name for p in full.iterdir()} <= layout  # every file is one docs/RUNS.md names
     losses = _losses(full)

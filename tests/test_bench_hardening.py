@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import importlib.util
 import json
 import math
 import os
@@ -372,6 +373,29 @@ def test_resume_keeps_one_tensorboard_point_per_step(tiny_dataset, tmp_path, mon
     assert _tb_steps(out / "tb", "train/loss") == (list(range(1, 15)),) * 2
     assert _tb_steps(out / "tb", "epoch/val_mae") == ([7, 14],) * 2
     assert [int(r["step"]) for r in _rows(out / "steps.csv")] == list(range(1, 15))
+
+
+@pytest.mark.render
+def test_a_run_without_the_tensorboard_package_trains_and_resumes_without_events(
+    tiny_dataset, tmp_path, monkeypatch
+):
+    """`.[bench]` without the `tb` extra: run and --resume train, log steps.csv and
+    metrics.csv as usual, write no tb/ and say once why; environment.json records no version."""
+    real = importlib.util.find_spec
+    hidden = lambda name, *a: None if name == "tensorboard" else real(name, *a)  # noqa: E731
+    monkeypatch.setattr(importlib.util, "find_spec", hidden)
+    out = tmp_path / "run"
+    args = ("--data", tiny_dataset, "--batch-size", 4, "--log-every", 1, "--quiet", "--out", out)
+    first = bench("run", "depthnet-tiny", "--max-steps", 2, "--ckpt-every", 1, *args)
+    assert (
+        first.stderr.count(runfolder.TENSORBOARD_MISSING)
+        + first.stdout.count(runfolder.TENSORBOARD_MISSING)
+        == 1
+    )
+    bench("run", "depthnet-tiny", "--max-steps", 3, "--resume", *args)
+    assert [int(r["step"]) for r in _rows(out / "steps.csv")] == [1, 2, 3]
+    assert not (out / "tb").exists()
+    assert json.loads((out / "environment.json").read_text())["tensorboard"] is None
 
 
 @pytest.mark.render

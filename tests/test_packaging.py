@@ -42,7 +42,9 @@ def test_blender_and_torch_are_extras_not_base_dependencies():
     for name in ("numpy", "opencv-python-headless", "pyarrow"):
         assert "<" not in base_pins[name], base_pins[name]
     assert "numpy<2" in project["optional-dependencies"]["gen"]
-    assert {"torch", "kornia", "tensorboard"} <= extras["bench"]
+    assert {"torch", "kornia"} <= extras["bench"]
+    # TensorBoard logs are optional (steps.csv holds the same values): their own extra
+    assert extras["tb"] == {"tensorboard"} and "tensorboard" not in extras["bench"]
     assert "bpy" not in extras["bench"]
     # numba (which caps numpy below 2.3) only for the toy study
     assert extras["toy"] == {"numba"} and "numba" not in extras["bench"]

@@ -6,7 +6,7 @@ Layout of a run folder::
     environment.json     versions, device, threads (and the frame cache of a training)
     steps.csv            training loss every ``log_every`` optimiser steps
     metrics.csv          one row per validation (epoch ends and the last step)
-    tb/                  TensorBoard events
+    tb/                  TensorBoard events (with the tensorboard package: the `tb` extra)
     checkpoints/         last.pt (training state) and best.pt (best validation score)
     summary.json         scores, formulas, averaging and scale rules, error by FOE distance
     summary.md           the same as a thesis-style table
@@ -36,6 +36,7 @@ folder (evaluate's per-pair predictions go through :func:`save_prediction`).
 from __future__ import annotations
 
 import csv
+import importlib.util
 import io
 import json
 import os
@@ -263,11 +264,46 @@ def start_logs(run: Path, resume: bool, last_step: int) -> list[Path]:
     return stale
 
 
+#: what a training logs once when it writes no TensorBoard events
+TENSORBOARD_MISSING = (
+    "TensorBoard logs off: the tensorboard package is not installed (pip install "
+    "'stillbox-gen[tb]'); steps.csv and metrics.csv hold the same values"
+)
+
+
+def has_tensorboard() -> bool:
+    """Whether the tensorboard package (the `tb` extra) is installed."""
+    return importlib.util.find_spec("tensorboard") is not None
+
+
+class NoTensorBoard:
+    """Stands in for torch's SummaryWriter without the tensorboard package: logs nothing."""
+
+    def add_scalar(self, *args: object, **kwargs: object) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+
+def tensorboard_writer(run: Path):  # noqa: ANN201 (torch's SummaryWriter, imported lazily)
+    """A SummaryWriter into ``run/tb``, or :class:`NoTensorBoard` when the package is missing
+    (torch.utils.tensorboard needs it)."""
+    if not has_tensorboard():
+        return NoTensorBoard()
+    from torch.utils.tensorboard import SummaryWriter
+
+    return SummaryWriter(str(tb_dir(run)))
+
+
 def cut_events(folder: Path, last_step: int) -> None:
     """Drop the TensorBoard events of steps after ``last_step`` from every event file of
     ``folder`` (rewritten atomically; a record cut short by a kill is dropped too), so a resumed
     run logs each step once, whatever reads the files (TensorBoard's purge of orphaned data is
-    done by some readers only)."""
+    done by some readers only). Without the tensorboard package the files cannot be read and are
+    left as they are (a resumed run then writes no events to them)."""
+    if not has_tensorboard():
+        return
     from tensorboard.backend.event_processing.event_file_loader import RawEventFileLoader
     from tensorboard.compat.proto.event_pb2 import Event
     from tensorboard.summary.writer.record_writer import RecordWriter

@@ -67,6 +67,7 @@ def environment(device: torch.device) -> dict:
         "torch_threads": torch.get_num_threads(),
         "cpu_count": os.cpu_count(),
         "world_size": int(os.environ.get("WORLD_SIZE", "1")),
+        "tensorboard": version("tensorboard") if runfolder.has_tensorboard() else None,
     }
 
 
@@ -298,11 +299,11 @@ class Trainer:
         env["frame_cache_bytes"] = self.train_store.nbytes + self.val_store.nbytes
         env["frame_cache_seconds"] = round(self.cache_seconds, 2)
         runfolder.write_environment(self.run, env)
-        from torch.utils.tensorboard import SummaryWriter
-
         # on resume, start_logs cut the event files back to the checkpoint's step (no purge_step:
         # its reader-side purge would also hide that step's points)
-        self.tb = SummaryWriter(str(runfolder.tb_dir(self.run)))
+        self.tb = runfolder.tensorboard_writer(self.run)
+        if not runfolder.has_tensorboard():
+            self.log(runfolder.TENSORBOARD_MISSING)
 
     def checkpoint(self, name: str) -> None:
         """Save ``checkpoints/<name>.pt`` (main process only): weights, optimiser, scheduler,

@@ -341,9 +341,9 @@ class Finetuner:
             self.log(f"removed {p}, left by an interrupted checkpoint write")
         runfolder.write_config(self.run, self.config())
         runfolder.write_environment(self.run, environment(self.device))
-        from torch.utils.tensorboard import SummaryWriter
-
-        self.tb = SummaryWriter(str(runfolder.tb_dir(self.run)))
+        self.tb = runfolder.tensorboard_writer(self.run)
+        if not runfolder.has_tensorboard():
+            self.log(runfolder.TENSORBOARD_MISSING)
 
     # ------------------------------------------------------------ training
 
