@@ -155,6 +155,28 @@ def test_speed_train_writes_its_table(tiny_dataset, tmp_path):
     assert [r["data"] for r in rows] == ["random", "random"] and rows[0]["vs_baseline"] == ""
 
 
+def test_speed_train_amp_times_the_bf16_step_against_float32(tmp_path):
+    """--amp adds a bfloat16-autocast row, alternated with the float32 levers-on step, whose
+    ratio is against that step; the step really runs under autocast."""
+    from benchmark.supervised.train_speed import _variant
+
+    args = ["speed", "--train", "--models", "depthnet-tiny", "--batches", "2", "--amp"]
+    proc = invoke_main(cli.main, *args, "--warmup", 1, "--repeats", 1, "--out", tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    (path,) = tmp_path.glob("train-speed-cpu*.csv")
+    rows = {r["levers"]: r for r in csv.DictReader(path.read_text().splitlines())}
+    assert list(rows) == ["on", "bf16"] and float(rows["on"]["vs_baseline"]) == 1
+    assert float(rows["bf16"]["vs_baseline"]) > 0 and "bfloat16 autocast" in proc.stdout
+    step = _variant("depthnet-tiny", torch.device("cpu"), True, False, torch.bfloat16)
+    assert step.autocast is torch.bfloat16
+    x = torch.randn(2, 6, 64, 64)
+    with torch.autocast("cpu", torch.bfloat16):  # what the step's forward runs under
+        assert step.net(x)[0].dtype is torch.bfloat16
+    assert torch.isfinite(step({"input": x, "target": torch.rand(2, 64, 64) * 100}))
+    alone = invoke_main(cli.main, "speed", "--amp", "--out", tmp_path / "latency")
+    assert alone.returncode == 2 and "--amp: only with --train" in alone.stderr
+
+
 @pytest.mark.parametrize(
     ("args", "words"),
     [

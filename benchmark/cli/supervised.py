@@ -387,6 +387,12 @@ def _multiples_of_64(option: str, values: tuple[int, ...]) -> tuple[int, ...]:
     help="--train: torch.compile the network (levers-on rows).",
 )
 @click.option(
+    "--amp",
+    is_flag=True,
+    help="--train: also time the levers-on step under bfloat16 autocast (run's --amp), "
+    "alternating in the same run; its ratio is against the float32 levers-on step.",
+)
+@click.option(
     "--resolutions",
     type=INTS,
     default=",".join(map(str, speed_table.DEFAULT_MAC_SIZES)),
@@ -424,6 +430,7 @@ def speed(
     data: Path | None,
     baseline: bool,
     compile_: bool,
+    amp: bool,
     resolutions: tuple[int, ...],
     time_res: int,
     warmup: int,
@@ -438,10 +445,12 @@ def speed(
 
     if train:
         return _train_speed(
-            names, batches, data, baseline, compile_, time_res, device, threads, out
+            names, batches, data, baseline, compile_, amp, time_res, device, threads, out
         )
     if data is not None:
         raise UserError("--data: only with --train (the sizes are timed on random inputs)")
+    if amp:
+        raise UserError("--amp: only with --train (the latency is timed in float32)")
     chosen = model_names(names or ",".join(speed_table.DEFAULT_MODELS))
     no_net = [n for n in chosen if not registry.MODELS[n].trainable]
     if no_net:
@@ -464,7 +473,9 @@ def speed(
     click.echo(f"written to {path}")
 
 
-def _train_speed(names, batches, data, baseline, compile_, time_res, device, threads, out) -> None:
+def _train_speed(
+    names, batches, data, baseline, compile_, amp, time_res, device, threads, out
+) -> None:
     """speed --train: samples/s of training steps (benchmark.supervised.train_speed)."""
     import torch
 
@@ -494,7 +505,7 @@ def _train_speed(names, batches, data, baseline, compile_, time_res, device, thr
         try:
             rows = train_speed.measure(
                 chosen, dev, sizes, data, time_res, baseline, compile_, given.get("warmup"),
-                given.get("repeats"),
+                given.get("repeats"), amp=amp,
             )  # fmt: skip
         except (ValueError, DataError) as e:
             raise user_error(e) from None
@@ -503,7 +514,9 @@ def _train_speed(names, batches, data, baseline, compile_, time_res, device, thr
     click.echo(
         f"training step (data, forward, loss, backward, optimiser step) on {source}; "
         f"device {dev}, {torch.get_num_threads()} threads, torch {torch.__version__}; median "
-        "step time after warm-up" + ("; levers off = baseline, alternating" if baseline else "")
+        "step time after warm-up"
+        + ("; levers off = baseline, alternating" if baseline else "")
+        + ("; bf16 = levers on under bfloat16 autocast, against levers on" if amp else "")
     )
     click.echo(train_speed.markdown(rows))
     click.echo(f"written to {path}")

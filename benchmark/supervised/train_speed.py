@@ -79,7 +79,13 @@ class _Batches:
         return torch.utils.data.default_collate([self.pairs[i] for i in idx])
 
 
-def _variant(name: str, device: torch.device, levers: bool, compile_: bool) -> TrainStep:
+def _variant(
+    name: str,
+    device: torch.device,
+    levers: bool,
+    compile_: bool,
+    autocast: torch.dtype | None = None,
+) -> TrainStep:
     spec = registry.MODELS[name]
     cfg = TrainConfig(model=name, data="", out="", **dataclasses.asdict(spec.recipe))
     torch.manual_seed(0)
@@ -89,7 +95,9 @@ def _variant(name: str, device: torch.device, levers: bool, compile_: bool) -> T
         model = model.to(memory_format=torch.channels_last)
     net = torch.compile(model) if levers and compile_ else model
     opt = make_optimizer(model.parameters(), cfg, fused=levers)
-    return TrainStep(net, opt, device, cfg.loss_weights, cfg.loss_scale, channels_last)
+    return TrainStep(
+        net, opt, device, cfg.loss_weights, cfg.loss_scale, channels_last, autocast=autocast
+    )
 
 
 def _pairs(data: Path, target: Target, needed: int, seed: int) -> PairDataset:
@@ -116,25 +124,28 @@ def measure(
     warmup: int | None = None,
     steps: int | None = None,
     seed: int = 0,
+    amp: bool = False,
 ) -> list[dict]:
-    """One row per network, batch size and variant (levers on; off too with ``baseline``):
-    ``ms_per_step`` (median), ``samples_per_s``, ``data_share`` (share of the step spent
-    assembling the batch), ``vs_baseline`` (samples/s over the baseline's; 1 for the baseline),
-    ``data`` (the dataset, or ``random``). ``warmup``/``steps`` None: :func:`default_steps`."""
+    """One row per network, batch size and variant (levers on; off too with ``baseline``; on
+    under bfloat16 autocast too with ``amp``, variant "bf16"): ``ms_per_step`` (median),
+    ``samples_per_s``, ``data_share`` (share of the step spent assembling the batch),
+    ``vs_baseline`` (samples/s over the baseline's: levers off, else with ``amp`` levers on; 1
+    for the baseline), ``data`` (the dataset, or ``random``). ``warmup``/``steps`` None:
+    :func:`default_steps`."""
     rows = []
     for name in names:
         target = registry.MODELS[name].kind.target
         for batch in batches:
             w, n = default_steps(batch)
             w, n = (w if warmup is None else warmup), (n if steps is None else steps)
-            pairs = None
-            if data is not None:
-                pairs = _pairs(
-                    data, target, 2 * batch * (w + n) if baseline else batch * (w + n), seed
-                )
             variants = {"on": _variant(name, device, True, compile_)}
             if baseline:
                 variants["off"] = _variant(name, device, False, False)
+            if amp:
+                variants["bf16"] = _variant(name, device, True, compile_, torch.bfloat16)
+            pairs = None
+            if data is not None:
+                pairs = _pairs(data, target, len(variants) * batch * (w + n), seed)
             feeds = {v: _Batches(target, batch, pairs, size, seed) for v in variants}
             times: dict[str, list[float]] = {v: [] for v in variants}
             waits: dict[str, list[float]] = {v: [] for v in variants}
@@ -142,14 +153,15 @@ def measure(
                 for v, step in variants.items():  # alternate: both see the same load
                     _sync(device)
                     t0 = time.perf_counter()
-                    b = feeds[v].get(v == "on")
+                    b = feeds[v].get(v != "off")
                     t1 = time.perf_counter()
                     step(b).item()
                     _sync(device)
                     if i >= w:
                         times[v].append(time.perf_counter() - t0)
                         waits[v].append(t1 - t0)
-            base = statistics.median(times["off"]) if baseline else None
+            ref = "off" if baseline else "on" if amp else None
+            base = statistics.median(times[ref]) if ref else None
             for v in variants:
                 t = statistics.median(times[v])
                 rows.append(
@@ -161,7 +173,7 @@ def measure(
                         if pairs is None
                         else f"{pairs.store.width}x{pairs.store.height}",
                         "levers": v,
-                        "compile": v == "on" and compile_,
+                        "compile": v != "off" and compile_,
                         "ms_per_step": round(t * 1e3, 2),
                         "samples_per_s": round(batch / t, 1),
                         "data_share": round(sum(waits[v]) / sum(times[v]), 4),
