@@ -303,3 +303,32 @@ def test_longest_scaling_runs_depth_bands_match_its_summary():
         assert cells[0].strip() == f"[{band['from_m']:g}, {band['to_m']:g})"
         assert int(cells[1].replace(",", "")) == band["pixels"]
         _agree(_numbers("|".join(cells[2:])), [band["mae"], band["mre"], band["mle"]])
+
+
+def test_amp_page_matches_its_outputs():
+    """The bf16 page's MAE table is its runs' summaries; its speed ratios are its CSVs'."""
+    page = (RESULTS / "amp" / "README.md").read_text()
+    out = RESULTS / "amp" / "outputs"
+    for seed in (0, 1):
+        row = next(line for line in page.splitlines() if line.startswith(f"| {seed} | "))
+        cells = row.strip("|").split("|")
+        for cell, mode in zip(cells[1:], ("fp32", "bf16"), strict=True):
+            s = json.loads((out / f"{mode}-s{seed}.summary.json").read_text())
+            config = json.loads((out / f"{mode}-s{seed}.config.json").read_text())
+            assert config["amp"] is (mode == "bf16") and s["training_state"]["global_step"] == 3078
+            m = s["metrics"]
+            _agree(_numbers(cell), [m["mae"], m["mre"], m["mle"]])
+    for run in (1, 2):
+        rows = _csv(out / f"train-speed-{run}.csv")
+        ms = {(int(r["batch"]), r["levers"]): float(r["ms_per_step"]) for r in rows}
+        for batch in (8, 32, 256):
+            if (batch, "bf16") not in ms:
+                continue
+            line = next(ln for ln in page.splitlines() if ln.startswith(f"| {batch} | "))
+            cells = line.strip("|").split("|")
+            assert float(cells[run].strip(" –×") or "nan") == round(
+                ms[batch, "on"] / ms[batch, "bf16"], 2
+            ), (batch, run)
+            assert float(cells[2 + run].strip(" –×")) == round(
+                ms[batch, "off"] / ms[batch, "bf16"], 2
+            ), (batch, run)
