@@ -11,7 +11,7 @@ import numpy as np
 
 from stillbox_gen.conventions import MAX_DEPTH, NOMINAL_SHIFT
 
-from ..core import flow, metrics, registry, runfolder
+from ..core import flow, metrics, registry, runfolder, thesis
 from ..core.registry import Scoring
 from ..core.runfolder import plot_path
 from . import plots
@@ -28,12 +28,7 @@ HEADERS = (
     "Fl-all",
     *(f"> {t} px" for t in flow.OUTLIER_PIXELS),
 )
-# Thesis Tables 3.4 / 3.5 (StillBox validation set, 64 px) and the public code's depth error.
-THESIS_64 = {
-    "depthnet": {"mae": 4.72, "mre": 0.26, "mle": 0.32, "depth_error": 4.65},
-    "flownets-depth": {"mae": 5.72, "mre": 0.363, "mle": 0.276},
-    "flownets-flow": {"mae": 6.462, "mre": 0.203, "mle": 0.172},  # FlowNetS -> depth
-}
+THESIS_64 = thesis.TABLE_3_4_64PX  # beside each run's scores in summary.md
 DEPTH_ERROR_FORMULA = (
     "original DepthNet 'depth error': mean |θ̃_1/4 − area_downsample(min(θ, "
     f"{MAX_DEPTH:g}))| at 1/4 resolution, per image, then averaged like the other metrics "

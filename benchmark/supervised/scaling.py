@@ -20,11 +20,10 @@ from dataclasses import asdict, dataclass
 from functools import lru_cache
 from pathlib import Path
 
-#: the chapter-3 budget implied by the public DepthNet code's 55 epochs over StillBox-64's
-#: 80,000 scenes x 10 frames (one sample per frame); the thesis states neither number
-THESIS_SAMPLES = 44_000_000
-#: DepthNet 64 px test MAE (m), thesis Table 3.4
-THESIS_MAE_64 = 4.72
+from ..core import thesis
+
+THESIS_SAMPLES = thesis.PUBLIC_CODE_SAMPLES  # the budget the fits extrapolate to
+THESIS_MAE_64 = thesis.TABLE_3_4_64PX["depthnet"]["mae"]  # DepthNet 64 px, thesis Table 3.4
 #: two-sided coverage of the prediction intervals
 COVERAGE = 0.95
 

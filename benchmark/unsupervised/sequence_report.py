@@ -6,14 +6,13 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 
 from stillbox_gen.formats import atomic_write_text
 
-from ..core import metrics, registry, runfolder
+from ..core import metrics, registry, runfolder, thesis
 from ..core.runfolder import RESULTS_CSV, RESULTS_JSON, RESULTS_MD
 from .sequence_eval import (
     PAIR_TARGET_DEPTH,
@@ -30,8 +29,7 @@ from .sequence_eval import (
     test_scenes,
 )
 
-#: the "no supervision" mark of the tables (Table 5.3 prints "-" where Table 5.2 prints ✗)
-NONE = "✗"
+NONE = thesis.NONE  # the tables' "no supervision" mark
 #: method names of the thesis' tables, per kind of registered method
 METHOD_NAMES = {
     registry.DEPTH.name: "Supervised DepthNet",
@@ -41,50 +39,8 @@ METHOD_NAMES = {
 }
 
 
-@dataclass(frozen=True)
-class ThesisRow:
-    """One row of thesis Table 5.2 (StillBox, no pretraining) or 5.3 (upside-down KITTI, no
-    training on it): ``occlusion`` None where the table has no such column; ``values`` in
-    core.metrics.THESIS_METRICS' order (MAE, MRE, MLE, SAE, SLE, P1.25, P1.25², P1.25³)."""
-
-    table: str
-    method: str
-    training_set: str
-    scale: str
-    supervision: str
-    occlusion: bool | None
-    values: tuple[float, ...]
-
-
 #: the thesis' numbers (Table 5.2: upright scores; Table 5.3: upside down)
-THESIS_ROWS = (
-    ThesisRow("5.2", "Supervised DepthNet", "S", "P", "D + O", False,
-              (3.822, 0.224, 0.229, 6.864, 0.446, 0.718, 0.856, 0.927)),
-    ThesisRow("5.2", "SFMLearner", "S", "GT", NONE, False,
-              (11.429, 0.593, 0.633, 17.173, 0.461, 0.479, 0.656, 0.756)),
-    ThesisRow("5.2", "SFMLearner", "S", "P", NONE, False,
-              (14.324, 0.816, 0.461, 19.447, 0.726, 0.302, 0.542, 0.696)),
-    ThesisRow("5.2", "Unsupervised DepthNet", "S", "P", NONE, False,
-              (10.356, 0.437, 0.387, 10.236, 0.516, 0.476, 0.697, 0.822)),
-    ThesisRow("5.2", "Unsupervised DepthNet", "S", "P", "O", False,
-              (5.248, 0.259, 0.232, 9.600, 0.380, 0.709, 0.887, 0.928)),
-    ThesisRow("5.2", "Unsupervised DepthNet", "S", "P", NONE, True,
-              (10.412, 0.435, 0.383, 15.450, 0.510, 0.503, 0.716, 0.820)),
-    ThesisRow("5.2", "Unsupervised DepthNet", "S", "P", "O", True,
-              (5.060, 0.212, 0.206, 9.262, 0.333, 0.729, 0.899, 0.943)),
-    ThesisRow("5.3", "Supervised DepthNet", "S", "P", "D + O", None,
-              (7.716, 0.637, 0.443, 10.499, 0.548, 0.359, 0.614, 0.774)),
-    ThesisRow("5.3", "Constant plane", "-", "GT", "-", None,
-              (7.547, 0.458, 0.476, 12.124, 0.600, 0.296, 0.547, 0.752)),
-    ThesisRow("5.3", "SFMLearner", "K", "GT", NONE, None,
-              (8.433, 0.551, 0.551, 12.469, 0.680, 0.255, 0.482, 0.668)),
-    ThesisRow("5.3", "SFMLearner", "K", "P", NONE, None,
-              (16.085, 1.511, 0.790, 19.677, 0.927, 0.176, 0.342, 0.494)),
-    ThesisRow("5.3", "Unsupervised DepthNet", "S → K", "P", NONE, None,
-              (7.759, 0.596, 0.442, 11.250, 0.555, 0.370, 0.628, 0.784)),
-    ThesisRow("5.3", "Unsupervised DepthNet", "S → K", "P", "O", None,
-              (7.731, 0.604, 0.414, 11.152, 0.536, 0.424, 0.673, 0.807)),
-)  # fmt: skip
+THESIS_ROWS = thesis.TABLES_5_2_5_3
 #: which thesis table sits beside the scores of each orientation
 THESIS_TABLE = {UPRIGHT: "5.2", UPSIDE_DOWN: "5.3"}
 HEADINGS = {
@@ -116,7 +72,7 @@ def supervision(row: dict) -> str:
     return "O" if row["pose"] == "orientation" else NONE
 
 
-def thesis_row(row: dict) -> ThesisRow | None:
+def thesis_row(row: dict) -> thesis.ThesisRow | None:
     """The thesis row beside a result row (its orientation's table): same method, scale and
     supervision, and occlusion module where the table has one."""
     key = (THESIS_TABLE[row["orientation"]], method(row), row["scale"], supervision(row))

@@ -58,6 +58,7 @@ import torch
 from stillbox_gen.conventions import MAX_DEPTH
 from stillbox_gen.dataset import Dataset
 
+from ..core import thesis
 from ..core.metrics import MIN_DEPTH
 from .reprojection import (
     MAX_SQUARE,
@@ -106,20 +107,8 @@ QUICK_ODM_EVERY = 5
 #: the square of the largest projected square, up to 16² copies of the batch).
 ODM_CHUNK = 8
 
-#: Thesis Table 4.1, copied: per loss, (ODM off, ODM on) rows of the values named by
-#: THESIS_KEYS (κ, λ, M, ΔM, LE Horizon, LE Flower).
-THESIS_KEYS = ("kappa", "lambda", "m", "delta_m", "horizon", "flower")
-THESIS_TABLE_4_1: dict[str, tuple[tuple[float, ...], tuple[float, ...]]] = {
-    "tv": ((1, 1, 0.34, 0.45, 0.37, 0.48), (0.1, 1, 0.63, 0.44, 0.36, 0.24)),
-    "tvv": ((3, 1, 0.36, 0.31, 0.86, 0.36), (0.3, 0.1, 0.74, 0.15, 0.26, 0.16)),
-    "diffusion": ((0.3, 30, 0.67, 0.32, 0.42, 0.16), (0.3, 1, 0.86, 1.05, 0.12, 0.10)),
-    "gradient_diffusion": ((0.3, 30, 0.54, 0.11, 0.36, 0.32), (0.3, 0.3, 0.77, 0.15, 0.16, 0.17)),
-    "robust_diffusion": ((0.3, 100, 0.69, 0.52, 0.44, 0.12), (1, 1, 0.84, 0.62, 0.07, 0.14)),
-    "robust_gradient_diffusion": (
-        (0.3, 30, 0.57, 0.23, 0.40, 0.29),
-        (0.3, 0.3, 0.77, 0.14, 0.12, 0.20),
-    ),
-}
+THESIS_KEYS = thesis.TABLE_4_1_KEYS  # κ, λ, M, ΔM, LE Horizon, LE Flower
+THESIS_TABLE_4_1 = thesis.TABLE_4_1
 
 
 def thesis_value(loss: str, odm: bool, key: str) -> float | None:
