@@ -261,3 +261,26 @@ def test_a_depthnet_unsup_checkpoint_keeps_its_posenet(files, tmp_path):
     pose = [k for k in source if k.startswith("pose.")]
     assert pose and any(not torch.equal(source[k], best["model"][k]) for k in pose)
     assert all(torch.equal(source[k], best["model"][k]) for k in source if k.startswith("depth."))
+
+
+def test_finetunes_training_knobs_are_the_training_configs_declarations():
+    """finetune restates no training knob: each of its options named like a TrainConfig flag is
+    made from that field's declaration (its help and rule), and every field declared for
+    finetune is an option of it; a declared rule refuses a bad value in finetune's terms."""
+    from benchmark.cli.unsupervised import finetune_cmd
+    from benchmark.core.config import FLAGGED
+    from benchmark.core.errors import FieldError
+    from benchmark.unsupervised.finetune import TRAINING_KNOBS, check_numbers
+
+    declared = {f.metadata["flag"].name: f for f in FLAGGED}
+    options = {p.opts[0]: p for p in finetune_cmd.params if p.opts[0].startswith("--")}
+    offered = {n for n, f in declared.items() if "finetune" in f.metadata["flag"].help}
+    assert offered <= set(options)
+    assert {declared[n].name for n in offered} == set(TRAINING_KNOBS)
+    for name in offered:
+        text = declared[name].metadata["flag"].help["finetune"].split("  [default")[0]
+        assert options[name].help.startswith(text.split("{")[0]), name
+    for knob, bad in (("lr", 0.0), ("batch_size", 0), ("seed", -1), ("log_every", 0)):
+        with pytest.raises(FieldError) as e:
+            check_numbers(FinetuneOptions(out=Path("x"), **{knob: bad}))
+        assert e.value.field == knob

@@ -17,7 +17,7 @@ from stillbox_gen.errors import ConfigError
 from ..core import registry
 from ..core.config import FLAGGED, KEPT_ON_RESUME, check_settings
 from ..core.errors import FieldError
-from ..core.registry import CLAMPED_RECIPE, DEPTH_RECIPE
+from ..core.registry import CLAMPED_RECIPE, DEPTH_RECIPE, UNSUPERVISED_RECIPE
 from .limits import FLOAT, INT
 
 if TYPE_CHECKING:
@@ -124,10 +124,17 @@ def _shown(value) -> str:
     return ",".join(f"{v:g}" for v in value) if isinstance(value, tuple) else f"{value:g}"
 
 
+#: the fields of TrainConfig whose option has no click default in ``command`` (None: the
+#: default, or with --resume the run's value): finetune keeps every option of its run
+KEPT_BY = {"run": KEPT_ON_RESUME, "compare": KEPT_ON_RESUME, "finetune": ("seed", *KEPT_ON_RESUME)}
+
+
 def setting_option(name: str, command: str):
-    """The click option of TrainConfig field ``name`` in ``command`` ("run", "compare"), made
-    from the field's Flag; its value is passed as ``name``. A recipe field has no click default
-    (None: the model's recipe applies); another shows the field's default."""
+    """The click option of TrainConfig field ``name`` in ``command`` ("run", "compare",
+    "finetune"), made from the field's Flag; its value is passed as ``name``. A recipe field
+    has no click default (None: the model's recipe applies; finetune's: the unsupervised
+    recipe's), nor has a field the command keeps on resume (KEPT_BY); another shows the
+    field's default."""
     field_, flag = _FIELDS[name], _FIELDS[name].metadata["flag"]
     text, kw = flag.help[command], {"metavar": flag.metavar}
     if flag.kind == "flag":
@@ -137,11 +144,12 @@ def setting_option(name: str, command: str):
     elif flag.kind in _TYPES:
         kw["type"] = _TYPES[flag.kind]
     if field_.metadata["recipe"]:
-        depth, clamped = (_shown(getattr(r, name)) for r in (DEPTH_RECIPE, CLAMPED_RECIPE))
-        text = text.format(depth=depth, clamped=clamped)
-    elif name in KEPT_ON_RESUME:  # None: the default, or the resumed run's value
+        recipes = (DEPTH_RECIPE, CLAMPED_RECIPE, UNSUPERVISED_RECIPE)
+        depth, clamped, unsupervised = (_shown(getattr(r, name)) for r in recipes)
+        text = text.format(depth=depth, clamped=clamped, unsupervised=unsupervised)
+    elif name in KEPT_BY.get(command, ()):  # None: the default, or the resumed run's value
         shown = "none" if field_.default is None else _shown(field_.default)
-        resumed = "; --resume: the run's" if command == "run" else ""
+        resumed = "; --resume: the run's" if command in ("run", "finetune") else ""
         text += f"  [default: {shown}{resumed}]"
     elif flag.kind != "flag":
         kw.update(default=field_.default, show_default=field_.default is not None)

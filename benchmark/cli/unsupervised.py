@@ -22,8 +22,6 @@ from stillbox_gen.arguments import check_out_folder
 from stillbox_gen.formats import atomic_write_text
 
 from ..core import runfolder
-from ..core.config import default
-from ..core.registry import UNSUPERVISED_RECIPE
 from ..unsupervised import finetune as finetune_lib
 from ..unsupervised import toy as study
 from ..unsupervised import toy_jobs, toy_plots, toy_runs
@@ -36,6 +34,7 @@ from .options import (
     UserError,
     dataset_dir,
     locked_out,
+    setting_option,
     torch_device,
     user_error,
 )
@@ -384,16 +383,8 @@ def _load_or_start(
     help="First steps with the DepthNet frozen, PoseNet alone learning (a random PoseNet's "
     f"wrong poses would push the depth the wrong way).  [default: {finetune_lib.POSE_WARMUP}]",
 )
-@click.option(
-    "--lr",
-    type=FLOAT,
-    help=f"Adam's learning rate.  [default: {UNSUPERVISED_RECIPE.lr:g}, the unsupervised recipe's]",
-)
-@click.option(
-    "--batch-size",
-    type=INT,
-    help=f"Sequences per step.  [default: {UNSUPERVISED_RECIPE.batch_size}]",
-)
+@setting_option("lr", "finetune")
+@setting_option("batch_size", "finetune")
 @click.option(
     "--occlusion",
     is_flag=True,
@@ -414,20 +405,16 @@ def _load_or_start(
     "PoseNet's translations: only the DepthNet learns.  [default: off; the pose warm-up is 0 "
     "with it]",
 )
-@click.option("--seed", type=INT, help="Seed of PoseNet's initialisation and the sampling.  "
-              "[default: 0]")  # fmt: skip
+@setting_option("seed", "finetune")
 @click.option(
     "--resume",
     is_flag=True,
     help="Continue the fine-tuning in --out from checkpoints/last.pt (its options are kept).",
 )
-@click.option("--threads", type=INT, default=0, show_default=True,
-              help="Torch CPU threads (0 = torch default).")  # fmt: skip
+@setting_option("threads", "finetune")
 @DEVICE_OPTION
-@click.option("--ckpt-every", type=INT, help="Steps between checkpoints (--resume: the run's "
-              f"unless given).  [default: {default('ckpt_every')}]")  # fmt: skip
-@click.option("--log-every", type=INT, help="Steps between steps.csv rows (--resume: the run's "
-              f"unless given).  [default: {default('log_every')}]")  # fmt: skip
+@setting_option("ckpt_every", "finetune")
+@setting_option("log_every", "finetune")
 @click.option("--quiet", is_flag=True, help="No progress bars.")
 def finetune_cmd(
     input_: Path | None, res: tuple[int, int] | None, out: Path, resume: bool, **o

@@ -163,6 +163,8 @@ class TrainConfig:
             {
                 "run": "Samples per optimiser step.  [default: model's, {depth}]",
                 "compare": "Samples per optimiser step." + MODELS_DEFAULT,
+                "finetune": "Sequences per step.  [default: {unsupervised}, the unsupervised "
+                "recipe's]",
             },
             rule=AT_LEAST_1,
         ),
@@ -175,6 +177,8 @@ class TrainConfig:
             {
                 "run": "Initial SGD learning rate.  [default: model's, {depth}]",
                 "compare": "Initial learning rate." + MODELS_DEFAULT,
+                "finetune": "Adam's learning rate.  [default: {unsupervised}, the unsupervised "
+                "recipe's]",
             },
             kind="float",
             rule=(lambda v: v > 0 and math.isfinite(v), "must be a positive number"),
@@ -227,7 +231,11 @@ class TrainConfig:
         0,
         flag=Flag(
             "--threads",
-            {"run": "Torch CPU threads (0 = torch default).", "compare": "Torch CPU threads."},
+            {
+                "run": "Torch CPU threads (0 = torch default).",
+                "compare": "Torch CPU threads.",
+                "finetune": "Torch CPU threads (0 = torch default).",
+            },
             rule=(lambda v: v >= 0, "must be 0 (torch default) or more"),
         ),
     )
@@ -238,6 +246,7 @@ class TrainConfig:
             {
                 "run": "Seed of initialisation and pair sampling.",
                 "compare": "Seed of every training.",
+                "finetune": "Seed of PoseNet's initialisation and the sampling.",
             },
             rule=(lambda v: 0 <= v <= MAX_SEED, f"must be an integer from 0 to {MAX_SEED}"),
         ),
@@ -268,12 +277,20 @@ class TrainConfig:
         200,
         flag=Flag(
             "--ckpt-every",
-            {"run": "Steps between mid-epoch checkpoints."},
-            rule=(lambda v: v >= 0, "must be 0 (epoch ends only) or more"),
+            {
+                "run": "Steps between mid-epoch checkpoints.",
+                "finetune": "Steps between checkpoints.",
+            },
+            rule=(lambda v: v >= 0, "must be 0 or more"),
         ),
     )
     log_every: int = setting(
-        10, flag=Flag("--log-every", {"run": "Steps between steps.csv rows."}, rule=AT_LEAST_1)
+        10,
+        flag=Flag(
+            "--log-every",
+            dict.fromkeys(("run", "finetune"), "Steps between steps.csv rows."),
+            rule=AT_LEAST_1,
+        ),
     )
     cache: bool | None = setting(None)
     save_predictions: bool = setting(

@@ -40,7 +40,7 @@ from stillbox_gen.conventions import NOMINAL_SHIFT
 
 from ..core import runfolder
 from ..core.checkpoint import first_line, load_checkpoint
-from ..core.config import MAX_SEED, default
+from ..core.config import check_settings, default
 from ..core.data import EpochBatches, EpochSampler
 from ..core.errors import FieldError, Ref
 from ..core.posenet import DepthPoseNet
@@ -122,22 +122,22 @@ def defaults(known_motion: bool = False) -> dict:
             "ckpt_every": default("ckpt_every"), "log_every": default("log_every")}  # fmt: skip
 
 
+#: options that are TrainConfig's training knobs: declared, and their rules, in core.config
+TRAINING_KNOBS = ("lr", "batch_size", "seed", "threads", "ckpt_every", "log_every")
+
+
 def check_numbers(o: FinetuneOptions) -> None:
-    """FieldError naming the first option out of its range (reads no file)."""
+    """FieldError naming the first option out of its range (reads no file): the training knobs
+    by TrainConfig's rules (config.check_settings), then fine-tuning's own."""
+    check_settings({name: getattr(o, name) for name in TRAINING_KNOBS})
     rules = (
         ("steps", o.steps is None or o.steps >= 1, "must be at least 1"),
         ("pose_warmup", o.pose_warmup is None or o.pose_warmup >= 0, "must be 0 or more"),
-        ("lr", o.lr is None or (o.lr > 0 and math.isfinite(o.lr)), "must be a positive number"),
-        ("batch_size", o.batch_size is None or o.batch_size >= 1, "must be at least 1"),
         (
             "smooth_weight",
             o.smooth_weight is None or (o.smooth_weight >= 0 and math.isfinite(o.smooth_weight)),
             "must be 0 or more",
         ),  # fmt: skip
-        ("seed", o.seed is None or 0 <= o.seed <= MAX_SEED, f"must be from 0 to {MAX_SEED}"),
-        ("threads", o.threads >= 0, "must be 0 (torch default) or more"),
-        ("ckpt_every", o.ckpt_every is None or o.ckpt_every >= 0, "must be 0 or more"),
-        ("log_every", o.log_every is None or o.log_every >= 1, "must be at least 1"),
     )
     for name, ok, rule in rules:
         if not ok:
