@@ -249,13 +249,33 @@ def test_runs_computed_alone_or_by_worker_processes_are_the_study_s(tmp_path):
     keys = ["photometric", "tv/odm-off", "robust_diffusion/odm-on", "diffusion/odm-off"]
     assert toy_jobs.schedule(keys) == ["robust_diffusion/odm-on", "tv/odm-off",
                                        "diffusion/odm-off", "photometric"]  # fmt: skip
-    seen = []
+    seen, reported = [], []
     done = {"photometric": (whole["photometric"], whole_best["photometric"])}
-    computed = toy_jobs.run_parallel(scenes, cfg, 2, done, lambda k, b, r: seen.append(k))
+    computed = toy_jobs.run_parallel(
+        scenes, cfg, 2, done, lambda k, b, r: seen.append(k), reported.append
+    )
     assert sorted(seen) == sorted(computed) == sorted(toy.run_keys(cfg)[1:])
+    assert sum(reported) == len(computed) * cfg.iterations  # the workers' progress, all of it
     rest = []
     assembled, _ = toy.run_study(scenes, cfg, on_run=rest.append, done={**done, **computed})
     assert rest == [] and json.dumps(_untimed(assembled)) == json.dumps(_untimed(whole))
+
+
+def test_a_worker_reports_its_iterations_as_it_goes(monkeypatch):
+    """A worker's run puts its iterations on the progress queue every PROGRESS_EVERY and the
+    remainder at its end (here 4 iterations, reports of 3: then 3 and 1)."""
+    import queue
+
+    from benchmark.unsupervised import toy_jobs
+
+    scenes, cfg = _tiny_study()
+    monkeypatch.setattr(toy_jobs, "PROGRESS_EVERY", 3)
+    monkeypatch.setattr(toy_jobs, "_progress", queue.Queue())
+    key, _, _ = toy_jobs._run(scenes, cfg, "tv/odm-on")
+    assert key == "tv/odm-on"
+    reports = []
+    toy_jobs._drain(toy_jobs._progress, reports.append)
+    assert reports == [3, 1]
 
 
 def test_resume_settings_name_what_changed_and_bad_run_files_are_one_line_errors(tmp_path):

@@ -264,15 +264,14 @@ def toy_cmd(
 
     def save(key: str, block: dict, b: study.BestRun) -> None:
         toy_runs.save(out, key, block, b, settings)
-        if jobs > 1:  # the workers' steps are not seen here: a run at a time
-            bar.set_description(key)
-            bar.update(cfg.iterations)
+        if jobs > 1:  # the workers' steps arrive through run_parallel's on_progress
+            bar.set_description(f"{jobs} workers, {key} done")
 
     with bar:
         computed = {}
         if jobs > 1:
             bar.set_description(f"{jobs} workers")
-            computed = toy_jobs.run_parallel(scenes, cfg, jobs, done, save)
+            computed = toy_jobs.run_parallel(scenes, cfg, jobs, done, save, bar.update)
         results, best = study.run_study(
             [s.to(dev) for s in scenes],
             cfg,
