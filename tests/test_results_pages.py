@@ -1,7 +1,7 @@
 """The numbers quoted in the results pages are those of their committed outputs: each table row
-of docs/results/scaling, reference, reference/unsupervised and table-5.2 is read back from the
-page and compared, at the page's precision, with the results.csv, fit.json and eval summaries
-beside it."""
+of docs/results/scaling, reference, reference/unsupervised, table-5.2, unsup-128, amp and toy is
+read back from the page and compared, at the page's precision, with the results.csv, fit.json,
+results.json and eval summaries beside it."""
 
 from __future__ import annotations
 
@@ -332,3 +332,52 @@ def test_amp_page_matches_its_outputs():
             assert float(cells[2 + run].strip(" –×")) == round(
                 ms[batch, "off"] / ms[batch, "bf16"], 2
             ), (batch, run)
+
+
+def _section(page: Path, heading: str) -> str:
+    """The text of ``page`` from the line ``heading`` to the next heading of its level."""
+    text = page.read_text()
+    start = text.index(f"\n{heading}\n")
+    level = heading.split(" ")[0] + " "
+    end = text.find(f"\n{level}", start + len(heading) + 2)
+    return text[start : end if end > 0 else len(text)]
+
+
+def _ours_and_thesis(cell: str) -> tuple[list[float], list[float]]:
+    """A cell "ours (thesis)": the numbers before the parenthesis and those inside it."""
+    ours, _, thesis = cell.replace("*", "").partition("(")
+    numbers = re.compile(r"-?\d+(?:\.\d+)?")
+    return [float(v) for v in numbers.findall(ours)], [float(v) for v in numbers.findall(thesis)]
+
+
+def test_toy_study_page_matches_its_results_json_and_the_thesis():
+    """The toy study's summary table (docs/results/toy/README.md, "The full study on these
+    scenes") against full/results.json (each loss's optimum, ODM off and on) and Table 4.1
+    (benchmark.core.thesis); the starting errors within 10 % of the thesis' fit."""
+    from benchmark.core.thesis import TABLE_4_1, TABLE_4_1_KEYS
+
+    page = RESULTS / "toy" / "README.md"
+    results = json.loads((RESULTS / "toy" / "full" / "results.json").read_text())
+    assert results["le0"]["horizon"] == pytest.approx(1.22, rel=0.1)
+    assert results["le0"]["flower"] == pytest.approx(0.57, rel=0.1)
+    assert results["iterations"] == 10_000 and len(results["lambdas"]) == 10
+    section = _section(page, "## The full study on these scenes")
+    rows = {}
+    for line in section.splitlines():
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        if line.startswith("|") and cells[0].replace(" ", "_") in TABLE_4_1:
+            rows[cells[0].replace(" ", "_")] = cells[1:]
+    assert sorted(rows) == sorted(TABLE_4_1)
+    for loss, cells in rows.items():
+        best = [results["runs"][f"{loss}/odm-{s}"]["best"] for s in ("off", "on")]
+        thesis = [dict(zip(TABLE_4_1_KEYS, row, strict=True)) for row in TABLE_4_1[loss]]
+        for i, (key, odm) in enumerate([("m", 0), ("m", 1), ("delta_m", 0), ("delta_m", 1)]):
+            ours, quoted = _ours_and_thesis(cells[i])
+            _agree(ours, [best[odm][key]])
+            assert quoted == [thesis[odm][key]]
+        for i, (b, th) in enumerate(zip(best, thesis, strict=True)):
+            ours, quoted = _ours_and_thesis(cells[4 + i])
+            assert ours == [b["lambda"], b["kappa"]] and quoted == [th["lambda"], th["kappa"]]
+            ours, quoted = _ours_and_thesis(cells[6 + i])
+            _agree(ours, [b["le"]["horizon"], b["le"]["flower"]])
+            assert quoted == [th["horizon"], th["flower"]]
