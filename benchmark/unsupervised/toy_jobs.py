@@ -63,17 +63,18 @@ def _start_worker(progress) -> None:  # noqa: ANN001 (a multiprocessing queue)
 def _run(scenes: list[ToyScene], cfg: StudyConfig, key: str) -> tuple[str, dict, BestRun]:
     """Run ``key`` in a worker, putting its iterations on the progress queue as they are done
     (every PROGRESS_EVERY and the remainder at the end)."""
-    unreported = [0]
+    unreported = 0
 
     def step() -> None:
-        unreported[0] += 1
-        if unreported[0] == PROGRESS_EVERY:
-            _progress.put(unreported[0])
-            unreported[0] = 0
+        nonlocal unreported
+        unreported += 1
+        if unreported == PROGRESS_EVERY:
+            _progress.put(unreported)
+            unreported = 0
 
     block, best = compute_run(scenes, cfg, key, on_step=step if _progress is not None else None)
-    if _progress is not None and unreported[0]:
-        _progress.put(unreported[0])
+    if _progress is not None and unreported:
+        _progress.put(unreported)
     return key, block, best
 
 
