@@ -289,6 +289,37 @@ def test_pose_warmup_trains_posenet_alone_then_both_and_resumes_into_the_right_p
     assert not (tmp_path / "km").exists()
 
 
+def test_pose_lr_sets_posenets_learning_rate_alone(tiny_dataset, tmp_path):
+    """run --pose-lr: from one checkpoint, one Adam step (about lr × sign(gradient) per weight)
+    moves the DepthNet's weights exactly as without it and PoseNet's about pose-lr / lr times
+    farther; a resume may not change it; a network without a PoseNet refuses it, in one line
+    naming the flag, before writing anything."""
+    base = ["run", "depthnet-unsup-tiny", "--data", tiny_dataset, "--quiet", "--batch-size", 4]
+    bench(*base, "--out", tmp_path / "start", "--max-steps", 1)
+    start = tmp_path / "start" / "checkpoints" / "last.pt"
+    moved = {}
+    for name, flags in (("same", []), ("fast", ["--pose-lr", "0.02"])):
+        out = tmp_path / name
+        bench(*base, *flags, "--pretrained", start, "--out", out, "--max-steps", 1)
+        after = torch.load(out / "checkpoints" / "last.pt", weights_only=True)["model"]
+        before = torch.load(start, weights_only=True)["model"]
+        moved[name] = {k: after[k] - before[k] for k in before if after[k].is_floating_point()}
+    lr = registry.UNSUPERVISED_RECIPE.lr
+    for k, same in moved["same"].items():
+        fast = moved["fast"][k]
+        if k.startswith("depth."):
+            torch.testing.assert_close(fast, same, rtol=0, atol=0, msg=k)
+        elif "running" not in k:
+            assert same.abs().max() <= 1.01 * lr, k
+    pose = [k for k in moved["fast"] if k.startswith("pose.") and "running" not in k]
+    assert max(moved["fast"][k].abs().max() for k in pose) > 0.5 * 0.02
+    resumed = [*base, "--pose-lr", "0.01", "--out", tmp_path / "fast", "--resume"]
+    _one_line(bench(*resumed, "--max-steps", 2, check=False), "--pose-lr")
+    no = ["run", "depthnet-tiny", "--data", tiny_dataset, "--quiet", "--out", tmp_path / "no"]
+    _one_line(bench(*no, "--pose-lr", "0.01", "--max-steps", 1, check=False), "--pose-lr")
+    assert not (tmp_path / "no").exists()
+
+
 def test_steps_csv_logs_the_terms_and_posenets_direction(tiny_dataset, tmp_path):
     """depthnet-unsup's steps.csv: photometric + smooth = loss on every row, and pose_cosine 1
     when the warps use the dataset's motion (--known-motion), within [−1, 1] with PoseNet's."""

@@ -96,7 +96,8 @@ class TrainConfig:
     (epochs 19, 30, 44, 53 of 55); ``loss_weights`` weigh the outputs finest (1/4) to coarsest
     (1/64); the loss is multiplied by ``loss_scale``. ``optimizer``: "sgd" (DepthNet recipe) or
     "adam" (public FlowNetS flow recipe); ``momentum`` is SGD's momentum or Adam's beta1;
-    ``dampening`` is SGD's, ``beta2`` Adam's. ``shift``: the nominal frame shift of the training
+    ``dampening`` is SGD's, ``beta2`` Adam's; ``pose_lr``: PoseNet's learning rate in a method
+    that learns from video (None: ``lr``). ``shift``: the nominal frame shift of the training
     pairs (the network answers for ``shift`` × metres per frame); ``depth_range``: metres,
     training targets are clipped to it and a depth network's outputs are clamped to it when
     scored or used (DepthNet: [0, 100] m, the clamped DepthNet of thesis 6.4: [10, 60] m).
@@ -179,6 +180,18 @@ class TrainConfig:
                 "compare": "Initial learning rate." + MODELS_DEFAULT,
                 "finetune": "Adam's learning rate.  [default: {unsupervised}, the unsupervised "
                 "recipe's]",
+            },
+            kind="float",
+            rule=(lambda v: v > 0 and math.isfinite(v), "must be a positive number"),
+        ),
+    )
+    pose_lr: float | None = setting(
+        None,
+        flag=Flag(
+            "--pose-lr",
+            {
+                "run": "depthnet-unsup*, sfmlearner*: PoseNet's learning rate (the depth network "
+                "keeps --lr; the schedule scales both).  [default: --lr]"
             },
             kind="float",
             rule=(lambda v: v > 0 and math.isfinite(v), "must be a positive number"),

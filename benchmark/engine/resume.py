@@ -17,7 +17,7 @@ RESUMED_FIELDS = (
     *("optimizer", "momentum", "dampening", "beta2", "weight_decay"),
     *("milestones", "gamma", "loss_weights", "loss_scale"),
     *("sequence_length", "occlusion", "smooth_weight", "smooth_kappa", "pose"),
-    *("known_motion", "pose_warmup"),
+    *("known_motion", "pose_warmup", "pose_lr"),
 )
 
 

@@ -71,6 +71,23 @@ def environment(device: torch.device) -> dict:
     }
 
 
+def parameter_groups(model: torch.nn.Module, cfg: TrainConfig) -> list[dict]:
+    """The optimiser's parameter groups: one at ``cfg.lr``, or with ``cfg.pose_lr`` the model's
+    PoseNet (its ``pose`` module) apart at that rate. FieldError on ``pose_lr`` for a model
+    without a PoseNet."""
+    if cfg.pose_lr is None:
+        return [{"params": list(model.parameters())}]
+    pose = getattr(model, "pose", None)
+    if not isinstance(pose, torch.nn.Module):
+        raise FieldError(
+            "pose_lr", f"is for a method with a PoseNet (depthnet-unsup*, sfmlearner*), got "
+            f"'{cfg.model}'",
+        )  # fmt: skip
+    own = {id(p) for p in pose.parameters()}
+    rest = [p for p in model.parameters() if id(p) not in own]
+    return [{"params": rest}, {"params": list(pose.parameters()), "lr": cfg.pose_lr}]
+
+
 def make_optimizer(params, cfg: TrainConfig, fused: bool = True) -> torch.optim.Optimizer:
     """The recipe's SGD or Adam. ``fused``: torch's fused implementation (one pass over each
     parameter for the whole update; the same formula, equal within floating-point rounding),
@@ -189,7 +206,7 @@ class Trainer:
             self.net = torch.nn.parallel.DistributedDataParallel(self.model, device_ids=ids)
         if cfg.compile:
             self.net = torch.compile(self.net)
-        self.opt = make_optimizer(self.model.parameters(), cfg)
+        self.opt = make_optimizer(parameter_groups(self.model, cfg), cfg)
         miles = sorted({max(1, round(m * cfg.epochs)) for m in cfg.milestones})
         self.sched = torch.optim.lr_scheduler.MultiStepLR(self.opt, miles, cfg.gamma)
         self.state = {"epoch": 0, "step_in_epoch": 0, "global_step": 0, "best": math.inf}
