@@ -15,6 +15,7 @@
 # optimiser), e.g. a known-motion run's last epoch to continue it past its planned epochs.
 # SMOOTH_WEIGHT: λ of the smooth loss (`run --smooth-weight`; 0: the photometric term alone).
 # POSE_WARMUP: first steps with the DepthNet frozen, PoseNet alone learning (`run --pose-warmup`).
+# POSE_LR: PoseNet's learning rate (`run --pose-lr`; default: the recipe's, as the depth network's).
 set -euo pipefail
 MODE=${1:?usage: run.sh orientation|known-motion [EPOCHS] [RUNS]}
 EPOCHS=${2:-10}
@@ -37,7 +38,7 @@ mkdir -p "$RUNS/kept"
 $B run depthnet-unsup $OPTIONS --data "$DATA" --batch-size 16 --epoch-size 100 \
     --epochs "$EPOCHS" --ckpt-every 100000 --threads 1 --quiet --out "$RUNS/O" \
     ${PRETRAINED:+--pretrained "$PRETRAINED"} ${SMOOTH_WEIGHT:+--smooth-weight "$SMOOTH_WEIGHT"} \
-    ${POSE_WARMUP:+--pose-warmup "$POSE_WARMUP"} &
+    ${POSE_WARMUP:+--pose-warmup "$POSE_WARMUP"} ${POSE_LR:+--pose-lr "$POSE_LR"} &
 run=$!
 rows() { echo $(($(cat "$RUNS/O/metrics.csv" 2>/dev/null | wc -l) - 1)); }
 seen=0
