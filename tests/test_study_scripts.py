@@ -21,7 +21,9 @@ or keys), never a measured number, so that a change of the library that breaks o
 - unsup-128/``loss_at_candidates.py``: a 1-step depthnet-unsup-tiny run on tiny_dataset
   (``--known-motion``) and on rotating_dataset (``--pose orientation``), 8 windows;
   ``pretrained_start.py``: the untrained depthnet-tiny checkpoint on tiny_dataset, 4 windows;
-  ``rotating_pose_control.py``: rotating_dataset's training scene, 2 steps.
+  ``rotating_pose_control.py``: rotating_dataset's training scene, 2 steps;
+  ``pose_generalisation.py``: its training and test scenes, 2 steps, frames as they are and
+  stabilised.
 
 Not covered: the author's own code (github.com/ClementPinard/unsupervised-depthnet) is not on
 this machine (offline), so ``harness.py verify`` (it imports the author's ``models``) is not run,
@@ -527,9 +529,32 @@ def test_rotating_pose_control(rotating_dataset, tiny_ckpt, with_ckpt):
     source = f"depth of {tiny_ckpt}" if with_ckpt else "true depth"
     assert re.fullmatch(
         rf"{re.escape(str(rotating_dataset))}: \d+ windows of 1 scenes, --pose orientation, "
-        + re.escape(source),
+        + re.escape(source)
+        + ", PoseNet width 0.25, Adam 0.001",
         out[0],
     ), out[0]
     assert [line.split(":")[0] for line in out[1:]] == ["after 0 steps", "after 2 steps"]
     for line in out[1:]:
         assert re.fullmatch(rf"after \d steps: loss {NUMBER}, pose cosine {NUMBER}", line), line
+
+
+@pytest.mark.render
+@pytest.mark.parametrize("stabilised", [False, True])
+def test_pose_generalisation(rotating_dataset, stabilised):
+    """PoseNet over a training split against the true depth, scored on test windows: a header,
+    the cosine before training and after each step."""
+    how = ["stabilised"] if stabilised else []
+    out = lines_of(
+        run_script("unsup-128/pose_generalisation.py", rotating_dataset, 2, 1e-3, 1, *how)
+    )
+    reads = "frames stabilised to the last one" if stabilised else "the rotating frames"
+    assert re.fullmatch(
+        rf"{re.escape(str(rotating_dataset))}: \d+ training windows of 1 scenes, \d+ test "
+        rf"windows of 1 scenes; PoseNet width 1 reading {reads}, Adam 0.001, true depth",
+        out[0],
+    ), out[0]
+    assert re.fullmatch(rf"after 0 steps: test cosine {NUMBER}", out[1]), out[1]
+    assert len(out) == 4
+    for k, line in enumerate(out[2:], 1):
+        pattern = rf"after {k} steps: training cosine {NUMBER}, test cosine {NUMBER} \(\d+ s\)"
+        assert re.fullmatch(pattern, line), line
