@@ -98,6 +98,7 @@ LIMITS: dict[str, Bound] = {
     # any finite rate: one that diverges stops the training in one line naming --lr (the
     # non-finite guard of engine.train, tested with --lr 1e300)
     "--lr": Bound(0.0, sys.float_info.max, above=True),
+    "--pose-lr": Bound(0.0, sys.float_info.max, above=True),  # PoseNet's own, guarded the same
     "--smooth-weight": Bound(0.0, 1000.0),  # λ; the toy study's grid ends at 100
     "--shift": Bound(1, FRAMES - 1, "frames"),  # below the frames of a scene
     "--seed": Bound(0, MAX_SEED),  # torch.manual_seed takes an unsigned 64-bit integer
