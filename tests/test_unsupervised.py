@@ -320,6 +320,32 @@ def test_pose_lr_sets_posenets_learning_rate_alone(tiny_dataset, tmp_path):
     assert not (tmp_path / "no").exists()
 
 
+def test_a_finished_run_without_milestones_resumes_to_more_epochs(tiny_dataset, tmp_path):
+    """depthnet-unsup's recipe has no milestones, so its learning rate does not depend on the
+    epoch count: a finished 1-epoch run resumed with --epochs 2 ends with the weights and
+    steps.csv of a run started with 2. DepthNet's recipe (milestones at fractions of the
+    epochs) refuses it in one line naming --epochs."""
+    base = ["run", "depthnet-unsup-tiny", "--data", tiny_dataset, "--quiet", "--batch-size", 4]
+    base += ["--epoch-size", 2, "--log-every", 1]
+    bench(*base, "--epochs", 2, "--out", tmp_path / "whole")
+    bench(*base, "--epochs", 1, "--out", tmp_path / "parts")
+    bench(*base, "--epochs", 2, "--out", tmp_path / "parts", "--resume")
+    for name in ("whole", "parts"):
+        rows = list(csv.DictReader((tmp_path / name / "steps.csv").open()))
+        assert [r["step"] for r in rows] == ["1", "2", "3", "4"]
+    whole, parts = ((tmp_path / n / "steps.csv").read_text() for n in ("whole", "parts"))
+    assert whole == parts
+    a, b = (torch.load(tmp_path / n / "checkpoints" / "last.pt", weights_only=True)["model"]
+            for n in ("whole", "parts"))  # fmt: skip
+    for k, v in a.items():
+        torch.testing.assert_close(b[k], v, rtol=0, atol=0, msg=k)
+    sup = ["run", "depthnet-tiny", "--data", tiny_dataset, "--quiet", "--max-steps", 1]
+    sup += ["--batch-size", 4]
+    bench(*sup, "--epochs", 1, "--out", tmp_path / "sup")
+    _one_line(bench(*sup, "--epochs", 2, "--out", tmp_path / "sup", "--resume", check=False),
+              "--epochs")  # fmt: skip
+
+
 def test_steps_csv_logs_the_terms_and_posenets_direction(tiny_dataset, tmp_path):
     """depthnet-unsup's steps.csv: photometric + smooth = loss on every row, and pose_cosine 1
     when the warps use the dataset's motion (--known-motion), within [−1, 1] with PoseNet's."""

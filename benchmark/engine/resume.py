@@ -34,10 +34,14 @@ def resumed_settings(ck: dict) -> dict:
 
 def check_resumed_settings(cfg: TrainConfig, ck: dict, where: str) -> None:
     """ValueError naming the flag when ``cfg`` changes a setting the checkpoint ``ck`` (file
-    ``where``) was trained with (RESUMED_FIELDS)."""
+    ``where``) was trained with (RESUMED_FIELDS). More ``epochs`` are allowed when the recipe has
+    no milestones (its learning rate does not depend on the epoch count): the run continues past
+    its planned end as if it had been started with them."""
     for field, then in resumed_settings(ck).items():
         now = _plain(getattr(cfg, field))
         if now == then:
+            continue
+        if field == "epochs" and not cfg.milestones and now > then:
             continue
         if flag_of(field) is None:
             raise FieldError(
