@@ -169,11 +169,36 @@ def test_unsupervised_reference_table_matches_its_results_csv():
         "author's code": [(author, "P"), (author, "P (fixed pair)")],
     }
     for label, keys in expected.items():
-        (cells,) = _rows(folder / "README.md", re.escape(label) + r"( \(.*)?")
+        # the first such row: the 64 px table (the 128 px section's has its own test)
+        cells = _rows(folder / "README.md", re.escape(label) + r"( \(.*)?")[0]
         for cell, (ckpt, scale) in zip(cells[1:], keys, strict=False):
             _agree(_numbers(cell), _mae_mre_mle(scored[("upright", ckpt, scale, "False")]))
     last = scored[("upright", ours + "last.pt", "P", "False")]
     assert _mae_mre_mle(last) == _mae_mre_mle(scored[("upright", ours + "best.pt", "P", "False")])
+
+
+def test_unsupervised_reference_128px_table_matches_its_results_csv():
+    """The author's code at 128 px: every epoch's row (both pair rules, PoseNet's cosine) and the
+    constant plane, read back from 128px/results.csv."""
+    folder = RESULTS / "reference" / "unsupervised"
+    scored = _sequence_rows(folder / "128px" / "results.csv")
+    section = (folder / "README.md").read_text().split("## At 128 px")[1].split("\n## ")[0]
+    table = _table(section)
+    constant = scored[("upright", "", "GT", "False")]
+    _agree(_numbers(table["constant plane (GT median)"][2]), _mae_mre_mle(constant))
+    epochs = [k for k in table if k.startswith("epoch ")]
+    assert epochs == [f"epoch {k}" for k in range(1, 11)]
+    for label in epochs:
+        k = int(label.split()[1])
+        cells = table[label]
+        assert cells[1] == f"{200 * k:,}"
+        ckpt = f"runs/ref-unsup-128/author/epoch{k}.pt"
+        rule = scored[("upright", ckpt, "P", "False")]
+        _agree(_numbers(cells[2]), _mae_mre_mle(rule))
+        _agree(
+            _numbers(cells[3]), _mae_mre_mle(scored[("upright", ckpt, "P (fixed pair)", "False")])
+        )
+        _agree(_numbers(cells[4]), _cosine(rule))
 
 
 def _table(text: str) -> dict[str, list[str]]:
