@@ -23,7 +23,7 @@ or keys), never a measured number, so that a change of the library that breaks o
   ``pretrained_start.py``: the untrained depthnet-tiny checkpoint on tiny_dataset, 4 windows;
   ``rotating_pose_control.py``: rotating_dataset's training scene, 2 steps;
   ``pose_generalisation.py``: its training and test scenes, 2 steps, frames as they are and
-  stabilised.
+  stabilised; ``curve.py``: its trend on an exact geometric series.
 
 Not covered: the author's own code (github.com/ClementPinard/unsupervised-depthnet) is not on
 this machine (offline), so ``harness.py verify`` (it imports the author's ``models``) is not run,
@@ -38,6 +38,7 @@ Blender nor a dataset.
 from __future__ import annotations
 
 import csv
+import importlib.util
 import json
 import os
 import re
@@ -558,3 +559,34 @@ def test_pose_generalisation(rotating_dataset, stabilised):
     for k, line in enumerate(out[2:], 1):
         pattern = rf"after {k} steps: training cosine {NUMBER}, test cosine {NUMBER} \(\d+ s\)"
         assert re.fullmatch(pattern, line), line
+
+
+def test_learning_curve_trend_against_a_stepped_geometric_series():
+    """curve.py's trend on an exact geometric approach to 10 m (MAE = 10 + 60·0.9^i every 100
+    steps): ratio 0.9, asymptote 10 m, and the steps to the constant (30 m) and to −25 % of it
+    (22.5 m) counted by stepping the series on; a target below the asymptote is never reached,
+    and a series that got worse has no trend."""
+    spec = importlib.util.spec_from_file_location("curve", ROOT / RESULTS / "unsup-128/curve.py")
+    curve = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(curve)
+
+    def series(constant: float) -> list[dict]:
+        return [
+            {"steps": 100 * i, "mae": 10 + 60 * 0.9**i, "constant": constant} for i in range(1, 8)
+        ]
+
+    def stepped(target: float) -> int:
+        i = 7
+        while 10 + 60 * 0.9**i > target:
+            i += 1
+        return 100 * (i - 7)
+
+    t = curve.trend(series(30.0))
+    assert t["ratio"] == pytest.approx(0.9) and t["asymptote"] == pytest.approx(10.0)
+    assert t["steps"] == 700 and t["mae"] == pytest.approx(10 + 60 * 0.9**7)
+    assert t["to_constant"] == stepped(30.0) > 0
+    assert t["to_goal"] == stepped(22.5) > t["to_constant"]
+    assert curve.trend(series(12.0))["to_goal"] is None  # 9 m: below the asymptote
+    worse = series(30.0)
+    worse[-1]["mae"] = worse[-2]["mae"] + 1
+    assert curve.trend(worse) is None
