@@ -16,6 +16,8 @@
 # SMOOTH_WEIGHT: λ of the smooth loss (`run --smooth-weight`; 0: the photometric term alone).
 # POSE_WARMUP: first steps with the DepthNet frozen, PoseNet alone learning (`run --pose-warmup`).
 # POSE_LR: PoseNet's learning rate (`run --pose-lr`; default: the recipe's, as the depth network's).
+# RESUME=1: continue the run in RUNS/MODE/O to EPOCHS (`run --resume`, the same options; more
+# epochs than it was started with are allowed, the recipe having no milestones).
 set -euo pipefail
 MODE=${1:?usage: run.sh orientation|known-motion [EPOCHS] [RUNS]}
 EPOCHS=${2:-10}
@@ -38,10 +40,12 @@ mkdir -p "$RUNS/kept"
 $B run depthnet-unsup $OPTIONS --data "$DATA" --batch-size 16 --epoch-size 100 \
     --epochs "$EPOCHS" --ckpt-every 100000 --threads 1 --quiet --out "$RUNS/O" \
     ${PRETRAINED:+--pretrained "$PRETRAINED"} ${SMOOTH_WEIGHT:+--smooth-weight "$SMOOTH_WEIGHT"} \
-    ${POSE_WARMUP:+--pose-warmup "$POSE_WARMUP"} ${POSE_LR:+--pose-lr "$POSE_LR"} &
+    ${POSE_WARMUP:+--pose-warmup "$POSE_WARMUP"} ${POSE_LR:+--pose-lr "$POSE_LR"} \
+    ${RESUME:+--resume} &
 run=$!
 rows() { echo $(($(cat "$RUNS/O/metrics.csv" 2>/dev/null | wc -l) - 1)); }
 seen=0
+[ -n "${RESUME:-}" ] && seen=$(rows)  # the epochs already kept
 while kill -0 $run 2>/dev/null; do  # keep the checkpoint written at each validation
     sleep 20
     if [ "$(rows)" -gt "$seen" ]; then
