@@ -220,6 +220,7 @@ def test_unsup_128_tables_match_their_outputs():
     text = (folder / "README.md").read_text()
     runs, control = text.split("## Runs and results")[1].split("## The control")
     control, losses = control.split("## Where the training loss")
+    control, later = control.split("## The author's code and a faster PoseNet")
     scored = {
         name: _sequence_rows(folder / name / "results.csv")
         for name in (
@@ -295,6 +296,129 @@ def test_unsup_128_tables_match_their_outputs():
     for label, cells in quoted.items():
         depth = "the checkpoint's depth" if label == "the checkpoint's own" else label
         _agree(_numbers(" ".join(cells[1:])), printed[depth])
+
+
+def _training_cosine(steps_csv: Path, after: int, upto: int) -> list[float]:
+    """The mean PoseNet cosine of a run's logged training steps after ``after``, to ``upto``."""
+    values = [float(r["pose_cosine"]) for r in _csv(steps_csv) if after < int(r["step"]) <= upto]
+    return [sum(values) / len(values)]
+
+
+def test_table_5_2_128_page_matches_its_outputs():
+    """Every row of the 128 px Table 5.2: both pair rules and the test cosine from the
+    eval-sequences results.csv it names, the training cosine from the run's steps.csv, and each
+    new row's seconds."""
+    folder = RESULTS / "table-5.2-128"
+    unsup = RESULTS / "unsup-128"
+    here, runs = folder / "results.csv", "runs/table-5.2-128/"
+    rows = {
+        "constant plane (GT median)": (here, "", "GT", "False", None),
+        "supervised DepthNet (P, D + O)": (
+            unsup / "supervised" / "results.csv",
+            "runs/sup-128/O/checkpoints/best.pt", "P", "False", None,
+        ),
+        "unsupervised DepthNet (P, O, occlusion module off)": (
+            unsup / "orientation" / "results.csv",
+            "runs/unsup-128/kept/epoch_4.pt", "P", "False", None,
+        ),
+        "unsupervised DepthNet (P, O, off), PoseNet at Adam 1e-3 (`--pose-lr`)": (
+            unsup / "orientation-pose-lr" / "results.csv",
+            "runs/unsup-128-poselr/orientation/kept/epoch_4.pt", "P", "False",
+            unsup / "orientation-pose-lr" / "steps.csv",
+        ),
+        "unsupervised DepthNet (P, O, occlusion module on)": (
+            here, runs + "unsup-O-odm/checkpoints/last.pt", "P", "True",
+            folder / "unsup-O-odm" / "steps.csv",
+        ),
+        "unsupervised DepthNet (P, no supervision: 6-DoF PoseNet)": (
+            here, runs + "unsup-6dof/checkpoints/last.pt", "P", "False",
+            folder / "unsup-6dof" / "steps.csv",
+        ),
+        "SFMLearner (P, O)": (
+            here, runs + "sfm/checkpoints/last.pt", "P", "False", folder / "sfm" / "steps.csv",
+        ),
+        "SFMLearner (GT, O)": (
+            here, runs + "sfm/checkpoints/last.pt", "GT", "False", folder / "sfm" / "steps.csv",
+        ),
+    }  # fmt: skip
+    text = (folder / "README.md").read_text()
+    table = _table(text.split("## Test split")[1].split("\n## ")[0])
+    for label, (results, ckpt, scale, occlusion, steps) in rows.items():
+        cells, scored = table[label], _sequence_rows(results)
+        row = scored[("upright", ckpt, scale, occlusion)]
+        _agree(_numbers(cells[2]), _mae_mre_mle(row))
+        fixed = scored.get(("upright", ckpt, "P (fixed pair)", occlusion))
+        _agree(_numbers(cells[3]), _mae_mre_mle(fixed) if fixed else [])
+        test, _, training = cells[4].partition(" / ")
+        _agree(_numbers(test), _cosine(row))
+        _agree(_numbers(training), _training_cosine(steps, 300, 400) if steps else [])
+    quoted = text.split("each\nrun's `seconds.txt` (")[1].split(")")[0]
+    seconds = [
+        float((folder / n / "seconds.txt").read_text())
+        for n in ("unsup-O-odm", "unsup-6dof", "sfm")
+    ]
+    assert [float(v.replace(",", "")) for v in re.findall(r"[\d,]+(?= s)", quoted)] == seconds
+
+
+def test_unsup_128_pose_lr_table_matches_its_outputs():
+    """The --pose-lr and recipe runs' checkpoints: both pair rules and the test cosine from each
+    run's merged results.csv, the ratio to the constant, the training cosine of the last 100
+    steps from steps.csv and the validation MAE from metrics.csv; and the pose-generalisation
+    table from its three outputs."""
+    folder = RESULTS / "unsup-128"
+    section = (folder / "README.md").read_text().split("## The author's code and a faster")[1]
+    section = section.split("\n## ")[0]
+    table = _table(section)
+    runs = {"": ("orientation-pose-lr", "unsup-128-poselr"), "recipe, ": ("orientation-recipe",
+            "unsup-128-recipe")}  # fmt: skip
+    labels = [k for k in table if re.fullmatch(r"(recipe, )?[\d,]+ steps", k)]
+    assert len(labels) == 10
+    for label in labels:
+        prefix = "recipe, " if label.startswith("recipe, ") else ""
+        run = folder / runs[prefix][0]
+        scored = _sequence_rows(run / "results.csv")
+        constant = float(scored[("upright", "", "GT", "False")]["mae"])
+        validation = {int(r["step"]): float(r["val_mae"]) for r in _csv(run / "metrics.csv")}
+        steps = int(label.removeprefix(prefix).split()[0].replace(",", ""))
+        ckpt = f"runs/{runs[prefix][1]}/orientation/kept/epoch_{steps // 100}.pt"
+        cells = table[label]
+        rule = scored[("upright", ckpt, "P", "False")]
+        fixed = scored[("upright", ckpt, "P (fixed pair)", "False")]
+        _agree(_numbers(cells[1]), _mae_mre_mle(rule))
+        _agree(_numbers(cells[2]), _mae_mre_mle(fixed))
+        ratios = cells[3].replace("\u2212", "-").replace(" %", "").split(" / ")
+        assert ratios == [f"{100 * (float(r['mae']) / constant - 1):+.1f}" for r in (rule, fixed)]
+        test, _, training = cells[4].partition(" / ")
+        _agree(_numbers(test), _cosine(rule))
+        logged = [
+            float(r["pose_cosine"])
+            for r in _csv(run / "steps.csv")
+            if steps - 100 < int(r["step"]) <= steps
+        ]
+        _agree(_numbers(training), [sum(logged) / len(logged)])
+        _agree(_numbers(cells[5]), [validation[steps]])
+    # pose_generalisation.py: the training cosines at 100, 300, 400, 600 steps and the test range
+    outputs = {
+        ("the rotating frames", "2e-4 (the recipe's)"): "rotating-lr2e-4.txt",
+        ("the rotating frames", "1e-3"): "rotating-lr1e-3.txt",
+        ("frames stabilised to the last one", "2e-4"): "stabilised-lr2e-4.txt",
+    }
+    rows = [line for line in section.splitlines() if line.startswith("| the rotating") or
+            line.startswith("| frames stabilised")]  # fmt: skip
+    assert len(rows) == len(outputs)
+    for line in rows:
+        reads, lr, training, test = (c.strip() for c in line.strip("|").split("|"))
+        text = (folder / "pose-generalisation" / outputs[(reads, lr)]).read_text()
+        train = {
+            int(s): float(c)
+            for s, c in re.findall(r"after (\d+) steps: training cosine (-?[\d.]+)", text)
+        }
+        tests = [
+            float(c)
+            for c in re.findall(r"\d+ steps: training cosine .*test cosine (-?[\d.]+)", text)
+        ]
+        _agree(_numbers(training), [train[k] for k in (100, 300, 400, 600)])
+        _agree(_numbers(test), [min(tests), max(tests)])
 
 
 def test_longest_scaling_run_matches_its_summary():

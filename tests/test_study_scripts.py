@@ -23,7 +23,8 @@ or keys), never a measured number, so that a change of the library that breaks o
   ``pretrained_start.py``: the untrained depthnet-tiny checkpoint on tiny_dataset, 4 windows;
   ``rotating_pose_control.py``: rotating_dataset's training scene, 2 steps;
   ``pose_generalisation.py``: its training and test scenes, 2 steps, frames as they are and
-  stabilised; ``curve.py``: its trend on an exact geometric series.
+  stabilised; ``curve.py`` reads only committed CSV files: its table must equal the committed
+  ``learning_curve.md``, and its trend is checked on an exact geometric series.
 
 Not covered: the author's own code (github.com/ClementPinard/unsupervised-depthnet) is not on
 this machine (offline), so ``harness.py verify`` (it imports the author's ``models``) is not run,
@@ -559,6 +560,16 @@ def test_pose_generalisation(rotating_dataset, stabilised):
     for k, line in enumerate(out[2:], 1):
         pattern = rf"after {k} steps: training cosine {NUMBER}, test cosine {NUMBER} \(\d+ s\)"
         assert re.fullmatch(pattern, line), line
+
+
+def test_learning_curve_is_the_committed_one(tmp_path):
+    """curve.py on the committed results.csv files writes the committed learning_curve.md (the
+    page's numbers come from those files) and its figure."""
+    out = run_script("unsup-128/curve.py", tmp_path)
+    assert "learning_curve.md" in out
+    committed = (ROOT / RESULTS / "unsup-128" / "learning_curve.md").read_text()
+    assert (tmp_path / "learning_curve.md").read_text() == committed
+    assert (tmp_path / "learning_curve.png").stat().st_size > 10_000
 
 
 def test_learning_curve_trend_against_a_stepped_geometric_series():

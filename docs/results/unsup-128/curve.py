@@ -28,7 +28,8 @@ TREND_POINTS = 4  # checkpoints a trend is fitted on
 RULES = {"P": "thesis rule P", "P (fixed pair)": "fixed pair"}
 #: (label, results.csv files, steps per epoch of its checkpoints, steps before its epoch 0)
 SERIES = (
-    ("ours, recipe (--pose orientation)", ["orientation/results.csv"], 100, 0),
+    ("ours, recipe (--pose orientation), first run", ["orientation/results.csv"], 100, 0),
+    ("ours, recipe, run again", ["orientation-recipe/results.csv"], 100, 0),
     ("ours, --pose-lr 1e-3", ["orientation-pose-lr/results.csv"], 100, 0),
     ("author's code (--supervise-pose)", ["../reference/unsupervised/128px/results.csv"], 200, 0),
     ("ours, true motion (--known-motion, stabilised data)", ["known-motion/results.csv"], 100, 0),
@@ -100,6 +101,10 @@ def trend(rows: list[dict], points: int = TREND_POINTS) -> dict | None:
             "to_goal": steps_to(last[-1]["constant"] * (1 + GOAL))}  # fmt: skip
 
 
+def _level_text(asymptote: float) -> str:
+    return "none (not slowing)" if math.isinf(asymptote) else f"{asymptote:.2f}"
+
+
 def _steps_text(more: int | None, now: int) -> str:
     return "never (levels off above)" if more is None else f"{now + more:,} ({more:,} more)"
 
@@ -121,7 +126,7 @@ def main(out: str) -> None:
                 continue
             trends.append(
                 f"| {label} | {RULES[rule]} | {t['steps']:,} | {t['mae']:.2f} | {t['ratio']:.2f} | "
-                f"{t['asymptote']:.2f} | {_steps_text(t['to_constant'], t['steps'])} | "
+                f"{_level_text(t['asymptote'])} | {_steps_text(t['to_constant'], t['steps'])} | "
                 f"{_steps_text(t['to_goal'], t['steps'])} |"
             )
         for ax, rule in zip(axes, RULES, strict=True):
