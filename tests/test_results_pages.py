@@ -390,12 +390,7 @@ def test_unsup_128_pose_lr_table_matches_its_outputs():
         assert ratios == [f"{100 * (float(r['mae']) / constant - 1):+.1f}" for r in (rule, fixed)]
         test, _, training = cells[4].partition(" / ")
         _agree(_numbers(test), _cosine(rule))
-        logged = [
-            float(r["pose_cosine"])
-            for r in _csv(run / "steps.csv")
-            if steps - 100 < int(r["step"]) <= steps
-        ]
-        _agree(_numbers(training), [sum(logged) / len(logged)])
+        _agree(_numbers(training), _training_cosine(run / "steps.csv", steps - 100, steps))
         _agree(_numbers(cells[5]), [validation[steps]])
     # pose_generalisation.py: the training cosines at 100, 300, 400, 600 steps and the test range
     outputs = {
