@@ -7,6 +7,9 @@ from __future__ import annotations
 
 import csv
 import json
+import math
+import signal
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -21,6 +24,7 @@ from benchmark.core import registry
 from benchmark.core.checkpoint import load_checkpoint, load_weights
 from benchmark.core.footage import Crop
 from benchmark.core.posenet import DepthPoseNet
+from benchmark.engine.loop import NonFiniteLoss
 from benchmark.engine.network import depth_network
 from benchmark.unsupervised.finetune import FinetuneOptions, Finetuner
 from benchmark.unsupervised.footage_sequences import frame_stride, moving_stretches, prepared_K
@@ -114,12 +118,18 @@ def test_pose_warmup_freezes_the_depthnet_then_trains_it(files, tmp_path):
     depth0, pose0 = copy(tuner.net.depth), copy(tuner.net.pose)
     assert all(torch.equal(depth0[k], v) for k, v in _weights(files["ckpt"]).items())
     batch = tuner.data.batch([0, 1], 0)
+
+    def one_step() -> str:  # as the engine's loop makes it: the step, then the step count
+        tuner.train_step(batch)
+        tuner.state["global_step"] += 1
+        return tuner.train_step.phase
+
     for _ in range(2):
-        assert tuner._one_step(batch) == "pose-warmup"
+        assert one_step() == "pose-warmup"
         assert all(torch.equal(depth0[k], v) for k, v in tuner.net.depth.state_dict().items())
     assert not any(p.requires_grad for p in tuner.net.depth.parameters())
     assert any(not torch.equal(pose0[k], v) for k, v in tuner.net.pose.state_dict().items())
-    assert tuner._one_step(batch) == "joint"
+    assert one_step() == "joint"
     depth = tuner.net.depth.state_dict()
     moved = [k for k in depth if not torch.equal(depth0[k], depth[k])]
     assert moved and all(p.requires_grad for p in tuner.net.depth.parameters())
@@ -140,6 +150,72 @@ def test_resume_continues_as_one_run_and_keeps_its_options(files, tmp_path):
     assert_bench_error(proc, "--lr", "0.0002")
     assert_bench_error(finetune(files, b, "--steps", 6, ok=False), "--out", "--resume")
     assert_bench_error(finetune(files, tmp_path / "none", "--resume", ok=False), "--resume")
+
+
+def _tuner(files: dict, out: Path, **changes) -> Finetuner:
+    o = FinetuneOptions(
+        out=out, ckpt=files["ckpt"], input=files["folder"], speed=3.0, fps=10.0, steps=4,
+        pose_warmup=1, batch_size=2, ckpt_every=1, log_every=1, quiet=True,
+    )  # fmt: skip
+    tuner = Finetuner(replace(o, **changes))
+    tuner.setup()
+    return tuner
+
+
+def _calls_then(tuner: Finetuner, at: int, then) -> list:
+    """Make ``tuner``'s step call ``then(loss)`` on its ``at``-th call; returns the calls."""
+    step, calls = tuner.train_step.step.update, []
+
+    def update(batch):
+        calls.append(1)
+        terms = step(batch)
+        return {**terms, "loss": then(terms["loss"])} if len(calls) == at else terms
+
+    tuner.train_step.step.update = update
+    return calls
+
+
+def test_a_nan_loss_stops_fine_tuning_keeping_the_last_good_checkpoints(files, tmp_path):
+    """The engine's loop (engine.loop) runs fine-tuning: a loss that turns NaN at step 3 stops
+    it in one line naming that step, and both checkpoints are step 2's, with finite weights."""
+    tuner = _tuner(files, tmp_path / "ft")
+    _calls_then(tuner, 3, lambda loss: loss * math.nan)
+    with pytest.raises(NonFiniteLoss, match=r"^fine-tuning stopped: the loss is nan at step 3 "):
+        tuner.fit()
+    for name in ("last", "best"):
+        ck = torch.load(tmp_path / "ft" / "checkpoints" / f"{name}.pt", weights_only=True)
+        assert ck["state"]["global_step"] == 2
+        assert all(torch.isfinite(v).all() for v in ck["model"].values() if v.is_floating_point())
+    assert [int(r["step"]) for r in _steps(tmp_path / "ft")] == [1, 2]
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+def test_an_interrupted_fine_tuning_resumes_as_one_run(files, tmp_path, sig):
+    """Ctrl-C (or SIGTERM) during step 1 of 4 (2 a pass over the footage's 4 sequences): the
+    step ends, both checkpoints are saved, then KeyboardInterrupt; --resume then gives the
+    steps.csv and weights of an uninterrupted run."""
+    whole, cut = tmp_path / "whole", tmp_path / "cut"
+    _tuner(files, whole, ckpt_every=0).fit()  # 0: saves at the end and when stopped only
+
+    def interrupt(loss):
+        signal.raise_signal(sig)
+        return loss
+
+    tuner = _tuner(files, cut, ckpt_every=0)
+    _calls_then(tuner, 1, interrupt)
+    with pytest.raises(KeyboardInterrupt):
+        tuner.fit()
+    assert torch.load(cut / "checkpoints" / "last.pt", weights_only=True)["state"] == {
+        "epoch": 0, "step_in_epoch": 1, "global_step": 1,
+    }  # fmt: skip
+    finetune(files, cut, "--resume")
+    assert _steps(cut) == _steps(whole)
+    for name in ("last", "best"):
+        a, b = (
+            _weights(whole / "checkpoints" / f"{name}.pt"),
+            _weights(cut / "checkpoints" / f"{name}.pt"),
+        )
+        assert all(torch.equal(a[k], b[k]) for k in a)
 
 
 def test_resume_keeps_steps_and_intervals_unless_given_again(files, tmp_path):

@@ -1,8 +1,9 @@
-"""Training of a registered network, resumable exactly: the one loop every trained method uses.
+"""Training of a registered network, resumable exactly: the engine's loop (engine.loop)
+configured for a method of the registry on a generated dataset (``run``, ``compare``).
 
 The kind of method chooses its training set and step through the table of engine.steps (pairs
 with ground truth: engine.pair_step; frame sequences without it: benchmark.unsupervised.training);
-the loop, the optimiser (the recipe's SGD or Adam), the learning-rate milestones, validation
+the optimiser (the recipe's SGD or Adam), the learning-rate milestones, validation
 (engine.evaluate, on fixed pairs of the val split), checkpoints and resume are the same for all.
 Flow networks keep the checkpoint with the best validation EPE instead of the best MAE
 (the kind's ``best_by``).
@@ -47,10 +48,12 @@ from ..core.data import (
 from ..core.device import resolve_device
 from ..core.errors import FieldError
 from ..core.posenet import DepthPoseNet
-from ..core.stopping import stop_requests
 from . import evaluate, pair_step  # noqa: F401 - pair_step registers the depth and flow steps
+from .loop import NonFiniteLoss, TrainingLoop, new_state
 from .resume import RESUME_KEYS, check_resumed_settings
-from .steps import logged_columns, step_maker
+from .steps import step_maker
+
+__all__ = ["NonFiniteLoss", "Trainer", "environment", "make_optimizer"]
 
 
 def environment(device: torch.device) -> dict:
@@ -124,10 +127,6 @@ def amp_dtype(cfg: TrainConfig, device: torch.device) -> torch.dtype | None:
 #: validation metrics of a scale-free depth (sfmlearner) with the ground truth's median scale
 GT_SCALED = ("gt_mae", "gt_mre", "gt_mle")
 
-#: running sums of the open stage (steps since the last validation), kept in the checkpoint so
-#: a resumed stage logs the same train_loss and samples/s as an uninterrupted one
-STAGE_KEYS = ("stage_loss_sum", "stage_steps", "stage_samples", "stage_wait", "stage_seconds")
-
 
 def pretrained_part(model: torch.nn.Module, ck: dict) -> torch.nn.Module:
     """What a ``--pretrained`` checkpoint ``ck`` initialises: ``model`` whole, or the DepthNet of
@@ -138,12 +137,11 @@ def pretrained_part(model: torch.nn.Module, ck: dict) -> torch.nn.Module:
     return model
 
 
-class NonFiniteLoss(ValueError):
-    """Training stopped on a NaN or infinite loss or weights (one line: step, epoch, what is
-    kept)."""
+class Trainer(TrainingLoop):
+    """A registered method trained on a generated dataset (``run``, ``compare``): the engine's
+    loop (engine.loop) with the kind's training set and step (engine.steps), the recipe's
+    learning-rate milestones, a validation at each stage's end and the best checkpoint kept."""
 
-
-class Trainer:
     def __init__(self, cfg: TrainConfig):
         self.cfg = cfg
         self.run = Path(cfg.out)
@@ -159,6 +157,7 @@ class Trainer:
         if self.device.type == "cuda" and self.world > 1:
             self.device = torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
         self.is_main_process = self.rank == 0  # rank 0 logs, validates and saves
+        self.show_progress = cfg.progress
 
     def log(self, msg: str) -> None:
         if self.is_main_process:
@@ -209,8 +208,7 @@ class Trainer:
         self.opt = make_optimizer(parameter_groups(self.model, cfg), cfg)
         miles = sorted({max(1, round(m * cfg.epochs)) for m in cfg.milestones})
         self.sched = torch.optim.lr_scheduler.MultiStepLR(self.opt, miles, cfg.gamma)
-        self.state = {"epoch": 0, "step_in_epoch": 0, "global_step": 0, "best": math.inf}
-        self.state.update(dict.fromkeys(STAGE_KEYS, 0))
+        self.state = new_state() | {"best": math.inf}
         if resume is not None:
             self._load_training_state(resume, last)
 
@@ -327,9 +325,7 @@ class Trainer:
         counters, model name, nominal displacement (metres), shift, depth range (metres), the
         training camera (frame size in pixels, horizontal field of view in degrees) and config.
         Weights that are no longer finite are never saved (NonFiniteLoss, in every process)."""
-        state = self.model.state_dict().values()
-        if not all(torch.isfinite(t).all() for t in state if t.is_floating_point()):
-            self._stop("the weights are not finite", self.state["global_step"])
+        self.check_finite_weights()
         if not self.is_main_process:
             return
         runfolder.save_checkpoint(
@@ -346,31 +342,6 @@ class Trainer:
                 "camera": self.camera,
                 "config": asdict(self.cfg),
             },
-        )
-
-    def _finite_everywhere(self, loss: float) -> bool:
-        """True when the step's loss is finite in every process (one all-reduce under DDP, so
-        all processes stop together)."""
-        finite = math.isfinite(loss)
-        if self.world > 1:
-            flag = torch.tensor([0.0 if finite else 1.0], device=self.device)
-            torch.distributed.all_reduce(flag, op=torch.distributed.ReduceOp.MAX)
-            finite = flag.item() == 0.0
-        return finite
-
-    def _stop(self, what: str, step: int) -> None:
-        """Raise NonFiniteLoss: ``what`` (a NaN or infinite loss or weights) at optimiser step
-        ``step``. Nothing is saved after it, so checkpoints/last.pt stays the last one with
-        finite weights; TensorBoard is closed first."""
-        last = runfolder.checkpoint_path(self.run, "last")
-        if self.is_main_process:
-            self.tb.close()
-        if self.world > 1:
-            torch.distributed.destroy_process_group()
-        kept = f"{last} is kept" if last.exists() else "no checkpoint was saved"
-        raise NonFiniteLoss(
-            f"training stopped: {what} at step {step} (epoch {self.state['epoch']}); try a "
-            f"smaller --lr (this run: {self.cfg.lr:g}); {kept}"
         )
 
     def total_steps(self) -> int:
@@ -396,11 +367,10 @@ class Trainer:
     def end_of_stage(self) -> None:
         """Close the open stage: validate, log a metrics row from its running sums, reset them,
         keep the best checkpoint, save the last one."""
-        st = self.state
-        steps, seconds = st["stage_steps"], st["stage_seconds"]
-        train_loss = st["stage_loss_sum"] / steps if steps else float("nan")
-        samples, wait = st["stage_samples"], st["stage_wait"]
-        st.update(dict.fromkeys(STAGE_KEYS, 0))
+        st, stage = self.state, self.close_stage()
+        steps, seconds = stage["stage_steps"], stage["stage_seconds"]
+        train_loss = stage["stage_loss_sum"] / steps if steps else float("nan")
+        samples, wait = stage["stage_samples"], stage["stage_wait"]
         if self.is_main_process:
             val = self.validate()
             row = {
@@ -431,82 +401,3 @@ class Trainer:
                     st["best"] = score
                 self.checkpoint("best")
         self.checkpoint("last")
-
-    def fit(self) -> None:
-        """Train to ``total_steps``; Ctrl-C or SIGTERM stops at the next step boundary, saving
-        'last' (then KeyboardInterrupt)."""
-        with stop_requests() as stop:
-            self._fit(stop)
-        if stop:
-            raise KeyboardInterrupt
-
-    def _fit(self, stop: list) -> None:
-        """Stages end at each epoch's end and at ``total_steps``. A stage whose end was reached
-        but not closed (Ctrl-C on its last step) is closed first when resuming."""
-        cfg, st = self.cfg, self.state
-        total = self.total_steps()
-        bar = tqdm(
-            total=total,
-            initial=st["global_step"],
-            unit="step",
-            dynamic_ncols=True,
-            disable=not (cfg.progress and self.is_main_process),
-        )
-        while not stop:
-            if st["stage_steps"] and (st["step_in_epoch"] == 0 or st["global_step"] >= total):
-                self.end_of_stage()
-            if st["global_step"] >= total:
-                break
-            self.train_set.set_epoch(st["epoch"])
-            self.sampler.set_epoch(st["epoch"], skip=st["step_in_epoch"] * self.per_rank_batch)
-            self.net.train()
-            seconds0, t_segment = st["stage_seconds"], time.perf_counter()
-            t_data = time.perf_counter()
-            for batch in self.loader:
-                st["stage_wait"] += time.perf_counter() - t_data
-                value = self.train_step(batch).item()
-                if not self._finite_everywhere(value):
-                    bar.close()
-                    self._stop(f"the loss is {value}", st["global_step"] + 1)
-                st["global_step"] += 1
-                st["step_in_epoch"] += 1
-                st["stage_loss_sum"] += value
-                st["stage_steps"] += 1
-                st["stage_samples"] += len(batch["input"]) * self.world
-                st["stage_seconds"] = seconds0 + time.perf_counter() - t_segment
-                bar.set_postfix(  # shown at the bar's next refresh (at most 10 a second)
-                    loss=f"{value:.3f}",
-                    samples_s=f"{st['stage_samples'] / st['stage_seconds']:.0f}",
-                    epoch=st["epoch"],
-                    refresh=False,
-                )
-                bar.update(1)
-                if self.is_main_process and st["global_step"] % cfg.log_every == 0:
-                    row = {
-                        "step": st["global_step"],
-                        "epoch": st["epoch"],
-                        "loss": value,
-                        "lr": self.opt.param_groups[0]["lr"],
-                    }
-                    terms = logged_columns(self.train_step)
-                    runfolder.append_row(self.run, runfolder.STEPS_CSV, row | terms)
-                    for k, v in {"loss": value, **terms}.items():
-                        self.tb.add_scalar(f"train/{k}", v, st["global_step"])
-                if cfg.ckpt_every and st["global_step"] % cfg.ckpt_every == 0:
-                    self.checkpoint("last")
-                if st["global_step"] >= total or stop:
-                    break
-                if st["step_in_epoch"] >= self.steps_per_epoch:  # --epoch-size
-                    break
-                t_data = time.perf_counter()
-            if st["step_in_epoch"] >= self.steps_per_epoch:
-                st["epoch"] += 1
-                st["step_in_epoch"] = 0
-                self.sched.step()
-            if stop:
-                self.checkpoint("last")
-        bar.close()
-        if self.is_main_process:
-            self.tb.close()
-        if self.world > 1:
-            torch.distributed.destroy_process_group()

@@ -41,13 +41,13 @@ from stillbox_gen.conventions import NOMINAL_SHIFT
 from ..core import runfolder
 from ..core.checkpoint import first_line, load_checkpoint
 from ..core.config import check_settings, default
-from ..core.data import EpochBatches, EpochSampler
+from ..core.data import EpochBatches, EpochSampler, PairBatches
 from ..core.errors import FieldError, Ref
 from ..core.posenet import DepthPoseNet
 from ..core.registry import UNSUPERVISED_RECIPE
-from ..core.stopping import stop_requests
 from ..engine.footage_job import InferOptions, prepare
-from ..engine.train import NonFiniteLoss, environment, make_optimizer
+from ..engine.loop import COUNTERS, TrainingLoop, new_state
+from ..engine.train import environment, make_optimizer
 from .footage_sequences import describe_stretches, footage_store, frame_stride
 from .sequences import SequenceDataset
 from .training import PhotometricStep, pose_cosine, smooth_settings
@@ -185,13 +185,62 @@ def freeze_depth(net: DepthPoseNet, frozen: bool) -> None:
     net.depth.eval()
 
 
-class Finetuner:
+class FinetuneStep:
+    """Fine-tuning's training step (engine.steps.Step): a PhotometricStep with the DepthNet
+    frozen while ``progress["global_step"]`` (steps done, resumed ones included) is below
+    ``warmup`` (:func:`freeze_depth`). ``phase`` is the last step's (PHASES), ``losses`` this
+    session's losses per phase; ``poses``: the footage's known motion is in the batches (the
+    ``pose_cosine`` column)."""
+
+    def __init__(
+        self, net: DepthPoseNet, step: PhotometricStep, warmup: int, progress: dict, poses: bool
+    ):
+        self.net, self.step, self.warmup, self.progress = net, step, warmup, progress
+        self.poses = poses
+        self.phase = PHASES[0]
+        self.losses: dict[str, list[float]] = {p: [] for p in PHASES}
+
+    def __call__(self, batch: dict) -> torch.Tensor:
+        warm = self.progress["global_step"] < self.warmup
+        self.phase = PHASES[0] if warm else PHASES[1]
+        self.net.train()
+        freeze_depth(self.net, warm)
+        terms = self.step.update(batch)
+        detached = {k: v.detach() for k, v in terms.items()}
+        self._last = batch, detached
+        self.losses[self.phase].append(float(detached["loss"]))
+        return detached["loss"]
+
+    def logged(self) -> dict:
+        """steps.csv's columns of the last step beside its loss: its phase, the photometric and
+        smooth terms, and PoseNet's direction (empty without the known motion)."""
+        batch, terms = self._last
+        return {
+            "phase": self.phase,
+            "photometric": float(terms["photometric"]),
+            "smooth": float(terms["smooth"]),
+            "pose_cosine": pose_cosine(batch, terms["translations"]) if self.poses else "",
+        }
+
+
+class Finetuner(TrainingLoop):
     """A fine-tuning checked and set up (:meth:`setup`, nothing written), then run (:meth:`fit`,
-    writing the run folder)."""
+    writing the run folder): the engine's loop (engine.loop) with a footage's sequences, the
+    :class:`FinetuneStep`, no validation and both checkpoints at every save."""
+
+    label = "fine-tuning"
+    bar_title = "finetune"
 
     def __init__(self, o: FinetuneOptions):
         self.o = o
         self.run = Path(o.out)
+        self.world, self.is_main_process, self.sched = 1, True, None
+        self.show_progress = not o.quiet
+
+    @property
+    def cfg(self) -> FinetuneOptions:
+        """The options the engine's loop reads (``lr``, ``log_every``, ``ckpt_every``)."""
+        return self.o
 
     def log(self, msg: str) -> None:
         if not self.o.quiet:
@@ -249,11 +298,11 @@ class Finetuner:
         self.own_pose = not isinstance(model, DepthPoseNet)
         net = DepthPoseNet(self.length, getattr(model, "width", 1.0), depth=model) if (
             self.own_pose) else model  # fmt: skip
-        self.net = net.to(self.device)
+        self.net = self.model = net.to(self.device)
         self.opt = make_optimizer(self.net.parameters(), replace(UNSUPERVISED_RECIPE, lr=o.lr))
         lam, kappa = smooth_settings(o.smooth_weight, None, o.occlusion)
         weights = UNSUPERVISED_RECIPE.loss_weights
-        self.step = PhotometricStep(
+        step = PhotometricStep(
             self.net,
             self.opt,
             self.device,
@@ -264,8 +313,16 @@ class Finetuner:
             o.occlusion,
             known_translation=o.known_motion,
         )
+        self.state = new_state()
+        self.train_set, self.per_rank_batch = self.data, o.batch_size
+        self.train_step = FinetuneStep(
+            self.net, step, o.pose_warmup, self.state, o.poses is not None
+        )
         self.sampler = EpochSampler(len(self.data), o.seed)
-        self.state = {"epoch": 0, "step_in_epoch": 0, "global_step": 0}
+        batches = EpochBatches(self.sampler, o.batch_size)
+        self.loader = torch.utils.data.DataLoader(
+            PairBatches(self.data), batch_size=None, sampler=batches
+        )
         if resume is None:
             return
         try:
@@ -301,12 +358,12 @@ class Finetuner:
             "recipe": {k: _plain(v) for k, v in asdict(UNSUPERVISED_RECIPE).items()},
         }
 
-    def save(self) -> None:
-        """checkpoints/last.pt (training state) and best.pt (the depth network alone)."""
+    def checkpoint(self, name: str) -> None:
+        """Every save writes both checkpoints: checkpoints/last.pt (the training state) and
+        best.pt (the depth network alone; without ground truth there is nothing to choose by,
+        so it is the last network). Weights that are not finite are never saved."""
+        self.check_finite_weights()
         depth = self.net.depth if self.own_pose else self.net
-        if not all(torch.isfinite(t).all() for t in self.net.state_dict().values()
-                   if t.is_floating_point()):  # fmt: skip
-            raise NonFiniteLoss(self._stop_text("the weights are not finite"))
         info = self.job.info
         plain = {
             "model": depth.state_dict(),
@@ -319,7 +376,7 @@ class Finetuner:
                 "height": self.job.size[1],
                 "fov_deg": float(info["fov_deg"]),
             },  # fmt: skip
-            "state": dict(self.state),
+            "state": {k: self.state[k] for k in COUNTERS},
             "config": self.config(),
         }
         full = {**plain, "optimizer": self.opt.state_dict()}
@@ -327,14 +384,6 @@ class Finetuner:
             full["pose"] = self.net.pose.state_dict()
         runfolder.save_checkpoint(runfolder.checkpoint_path(self.run, "last"), full)
         runfolder.save_checkpoint(runfolder.checkpoint_path(self.run, "best"), plain)
-
-    def _stop_text(self, what: str) -> str:
-        last = runfolder.checkpoint_path(self.run, "last")
-        kept = f"{last} is kept" if last.exists() else "no checkpoint was saved"
-        return (
-            f"fine-tuning stopped: {what} at step {self.state['global_step'] + 1}; try a smaller "
-            f"--lr (this run: {self.o.lr:g}); {kept}"
-        )
 
     def _start_folder(self) -> None:
         for p in runfolder.start_logs(self.run, self.o.resume, self.state["global_step"]):
@@ -347,73 +396,28 @@ class Finetuner:
 
     # ------------------------------------------------------------ training
 
+    def total_steps(self) -> int:
+        return self.o.steps
+
+    def end_of_stage(self) -> None:
+        """No validation: the stage's sums are dropped; the last step saves both checkpoints."""
+        self.close_stage()
+        if self.state["global_step"] >= self.total_steps():
+            self.checkpoint("last")
+
+    def step_row(self, loss: float) -> dict:
+        """steps.csv: step, epoch, phase, loss, photometric, smooth, pose_cosine, lr."""
+        st, terms = self.state, self.train_step.logged()
+        return {"step": st["global_step"], "epoch": st["epoch"], "phase": terms.pop("phase"),
+                "loss": loss, **terms, "lr": self.opt.param_groups[0]["lr"]}  # fmt: skip
+
     def fit(self) -> dict:
         """Train to ``steps`` (Ctrl-C or SIGTERM: stop at the next step boundary, saving both
         checkpoints, then KeyboardInterrupt); returns the summary (:func:`describe`)."""
         self._start_folder()
         start, first = time.perf_counter(), self.state["global_step"]
-        try:
-            with stop_requests() as stop:
-                losses = self._loop(stop)
-        finally:
-            self.tb.close()
-        self.save()
-        if stop:
-            raise KeyboardInterrupt
-        return self.summary(losses, first, time.perf_counter() - start)
-
-    def _loop(self, stop: list) -> dict[str, list[float]]:
-        o, st = self.o, self.state
-        seen: dict[str, list[float]] = {p: [] for p in PHASES}
-        bar = tqdm(total=o.steps, initial=st["global_step"], unit="step", disable=o.quiet,
-                   desc="finetune", dynamic_ncols=True)  # fmt: skip
-        with bar:
-            while st["global_step"] < o.steps and not stop:
-                epoch = st["epoch"]
-                self.data.set_epoch(epoch)
-                self.sampler.set_epoch(epoch, skip=st["step_in_epoch"] * o.batch_size)
-                for _, indices in EpochBatches(self.sampler, o.batch_size):
-                    phase = self._one_step(self.data.batch(indices, epoch))
-                    seen[phase].append(self._last["loss"])
-                    bar.set_postfix(loss=f"{self._last['loss']:.3f}", phase=phase, refresh=False)
-                    bar.update(1)
-                    if st["global_step"] >= o.steps or stop:
-                        break
-                if st["step_in_epoch"] >= self.steps_per_epoch:
-                    st["epoch"] += 1
-                    st["step_in_epoch"] = 0
-        return seen
-
-    def _one_step(self, batch: dict) -> str:
-        """One optimiser step (DepthNet frozen during the warm-up), its log row and checkpoint;
-        returns its phase."""
-        o, st = self.o, self.state
-        warm = st["global_step"] < o.pose_warmup
-        self.net.train()
-        freeze_depth(self.net, warm)
-        terms = self.step.update(batch)
-        terms = {k: v.detach() for k, v in terms.items()}
-        loss = float(terms["loss"])
-        if not math.isfinite(loss):
-            raise NonFiniteLoss(self._stop_text(f"the loss is {loss}"))
-        st["global_step"] += 1
-        st["step_in_epoch"] += 1
-        phase = PHASES[0] if warm else PHASES[1]
-        row = {
-            "step": st["global_step"], "epoch": st["epoch"], "phase": phase, "loss": loss,
-            "photometric": float(terms["photometric"]), "smooth": float(terms["smooth"]),
-            "pose_cosine": pose_cosine(batch, terms["translations"]) if o.poses else "",
-            "lr": self.opt.param_groups[0]["lr"],
-        }  # fmt: skip
-        self._last = row
-        if st["global_step"] % o.log_every == 0:
-            runfolder.append_row(self.run, runfolder.STEPS_CSV, row)
-            for k in ("loss", "photometric", "smooth", "pose_cosine"):
-                if row[k] != "":
-                    self.tb.add_scalar(f"train/{k}", row[k], st["global_step"])
-        if o.ckpt_every and st["global_step"] % o.ckpt_every == 0:
-            self.save()
-        return phase
+        super().fit()
+        return self.summary(self.train_step.losses, first, time.perf_counter() - start)
 
     def summary(self, losses: dict[str, list[float]], first: int, seconds: float) -> dict:
         """What the run did, for :func:`describe` (losses: this session's, per phase)."""
