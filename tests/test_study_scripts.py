@@ -601,3 +601,48 @@ def test_learning_curve_trend_against_a_stepped_geometric_series():
     worse = series(30.0)
     worse[-1]["mae"] = worse[-2]["mae"] + 1
     assert curve.trend(worse) is None
+
+
+@pytest.mark.parametrize("run", ["orientation-recipe", "orientation-pose-lr"])
+def test_collect_gives_back_the_committed_outputs_of_a_run(tmp_path, run):
+    """collect.py on a run.sh folder rebuilt from a committed run (each scored epoch's
+    eval-sequences rows with the constant plane, as eval-sequences writes them) gives back the
+    committed results.csv, results-epoch_K.md and logs byte for byte: the merge is the one the
+    page's numbers went through."""
+    committed = ROOT / RESULTS / "unsup-128" / run
+    runs = tmp_path / "orientation"
+    (runs / "O").mkdir(parents=True)
+    for name in ("config.json", "metrics.csv", "steps.csv"):
+        shutil.copyfile(committed / name, runs / "O" / name)
+    with open(committed / "results.csv", newline="") as f:  # csv's line ends: CR LF
+        header, *rows = f.read().splitlines(keepends=True)
+    model = header.split(",").index("model")
+    constant = [r for r in rows if r.split(",")[model] == "constant"]
+    epochs = sorted(int(p.stem.split("_")[1]) for p in committed.glob("results-epoch_*.md"))
+    for k in epochs:
+        own = [r for r in rows if f"/kept/epoch_{k}.pt," in r]
+        assert own, k
+        folder = runs / f"eval-epoch_{k}"
+        folder.mkdir()
+        with open(folder / "results.csv", "w", newline="") as f:
+            f.writelines([header, *constant, *own])
+        shutil.copyfile(committed / f"results-epoch_{k}.md", folder / "results.md")
+    out = tmp_path / "out"
+    said = run_script("unsup-128/collect.py", runs, out)
+    assert said.strip() == f"{out}: epochs {', '.join(map(str, epochs))}"
+    for path in committed.iterdir():
+        assert (out / path.name).read_bytes() == path.read_bytes(), path.name
+    assert len(list(out.iterdir())) == len(list(committed.iterdir()))
+
+
+def test_collect_refuses_a_folder_that_is_not_a_run_in_one_line(tmp_path):
+    proc = subprocess.run(
+        [sys.executable, str(RESULTS / "unsup-128/collect.py"), str(tmp_path), str(tmp_path / "o")],
+        cwd=ROOT, capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert proc.returncode == 1 and proc.stdout == ""
+    assert (
+        proc.stderr.strip()
+        == f"collect.py: {tmp_path / 'O'}: no metrics.csv (not a run.sh run folder)"
+    )
+    assert not (tmp_path / "o").exists()
