@@ -11,7 +11,7 @@ RUNS=${1:-runs/table-5.2-128}
 B=${STILLBOX_BENCH:-stillbox-bench}
 G=${STILLBOX_GEN:-stillbox-gen}
 DATA=data/stillbox-rot-128
-[ -f "$DATA/dataset.json" ] || $G --preset stillbox-rotating --res 128 --scenes 240 --out "$DATA"
+[ -f "$DATA/manifest.parquet" ] || $G --preset stillbox-rotating --res 128 --scenes 240 --out "$DATA"
 A="--data $DATA --batch-size 16 --epoch-size 100 --epochs 4 --threads 1 --ckpt-every 100000 --quiet"
 train() {  # NAME MODEL OPTIONS...: one row, timed
     local name=$1 model=$2

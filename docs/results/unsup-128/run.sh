@@ -27,11 +27,11 @@ G=${STILLBOX_GEN:-stillbox-gen}
 case $MODE in
 orientation)
     DATA=data/stillbox-rot-128
-    [ -f "$DATA/dataset.json" ] || $G --preset stillbox-rotating --res 128 --scenes 240 --out "$DATA"
+    [ -f "$DATA/manifest.parquet" ] || $G --preset stillbox-rotating --res 128 --scenes 240 --out "$DATA"
     OPTIONS="--pose orientation" ;;
 known-motion)
     DATA=data/stillbox-128
-    [ -f "$DATA/dataset.json" ] || $G --res 128 --scenes 600 --out "$DATA"
+    [ -f "$DATA/manifest.parquet" ] || $G --res 128 --scenes 600 --out "$DATA"
     OPTIONS="--known-motion" ;;
 *) echo "run.sh: MODE must be orientation or known-motion, got '$MODE'" >&2; exit 2 ;;
 esac

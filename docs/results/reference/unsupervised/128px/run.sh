@@ -12,7 +12,7 @@ D=data/stillbox-rot-128
 H=docs/results/reference/unsupervised/harness.py
 B=.venv/bin/stillbox-bench P=.venv/bin/python
 export OMP_NUM_THREADS=1 MKL_NUM_THREADS=1
-[ -f "$D/dataset.json" ] || .venv/bin/stillbox-gen --preset stillbox-rotating --res 128 \
+[ -f "$D/manifest.parquet" ] || .venv/bin/stillbox-gen --preset stillbox-rotating --res 128 \
   --scenes 240 --out "$D"
 mkdir -p "$RUNS"
 $P $H prepare "$D" "$RUNS/author-layout"
