@@ -361,20 +361,23 @@ def test_table_5_2_128_page_matches_its_outputs():
 
 
 def test_unsup_128_pose_lr_table_matches_its_outputs():
-    """The --pose-lr and recipe runs' checkpoints: both pair rules and the test cosine from each
-    run's merged results.csv, the ratio to the constant, the training cosine of the last 100
-    steps from steps.csv and the validation MAE from metrics.csv; and the pose-generalisation
+    """The --pose-lr, recipe and D + O → O runs' checkpoints: both pair rules and the test cosine
+    from each run's merged results.csv, the ratio to the constant, the training cosine of the last
+    100 steps from steps.csv and the validation MAE from metrics.csv; and the pose-generalisation
     table from its three outputs."""
     folder = RESULTS / "unsup-128"
     section = (folder / "README.md").read_text().split("## The author's code and a faster")[1]
     section = section.split("\n## ")[0]
     table = _table(section)
-    runs = {"": ("orientation-pose-lr", "unsup-128-poselr"), "recipe, ": ("orientation-recipe",
-            "unsup-128-recipe")}  # fmt: skip
-    labels = [k for k in table if re.fullmatch(r"(recipe, )?[\d,]+ steps", k)]
-    assert len(labels) == 10
+    runs = {
+        "": ("orientation-pose-lr", "unsup-128-poselr"),
+        "recipe, ": ("orientation-recipe", "unsup-128-recipe"),
+        "D + O → O, ": ("finetune-warmup-1000", "ft-128-warm1000"),
+    }
+    labels = [k for k in table if re.fullmatch(r"(recipe, |D \+ O → O, )?[\d,]+ steps", k)]
+    assert len(labels) == 13
     for label in labels:
-        prefix = "recipe, " if label.startswith("recipe, ") else ""
+        prefix = next(p for p in runs if p and label.startswith(p)) if label[0].isalpha() else ""
         run = folder / runs[prefix][0]
         scored = _sequence_rows(run / "results.csv")
         constant = float(scored[("upright", "", "GT", "False")]["mae"])
@@ -392,6 +395,12 @@ def test_unsup_128_pose_lr_table_matches_its_outputs():
         _agree(_numbers(test), _cosine(rule))
         _agree(_numbers(training), _training_cosine(run / "steps.csv", steps - 100, steps))
         _agree(_numbers(cells[5]), [validation[steps]])
+    # the D + O -> O run's supervised start: its test MAE on stabilised pairs and its best step
+    again = json.loads((folder / "supervised-again" / "summary.json").read_text())
+    quoted = section.split("test MAE on its stabilised test pairs ")[1].split(" m")[0]
+    assert float(quoted) == round(again["metrics"]["mae"], 2)
+    best = min(_csv(folder / "supervised-again" / "metrics.csv"), key=lambda r: float(r["val_mae"]))
+    assert "best of 8 epochs at 906 steps" in section and best["step"] == "906"
     # pose_generalisation.py: the training cosines at 100, 300, 400, 600 steps and the test range
     outputs = {
         ("the rotating frames", "2e-4 (the recipe's)"): "rotating-lr2e-4.txt",
