@@ -31,6 +31,7 @@ SERIES = (
     ("ours, recipe (--pose orientation), first run", ["orientation/results.csv"], 100, 0),
     ("ours, recipe, run again", ["orientation-recipe/results.csv"], 100, 0),
     ("ours, --pose-lr 1e-3", ["orientation-pose-lr/results.csv"], 100, 0),
+    ("ours, D + O → O, 1,000-step PoseNet warm-up", ["finetune-warmup-1000/results.csv"], 100, 0),
     ("author's code (--supervise-pose)", ["../reference/unsupervised/128px/results.csv"], 200, 0),
     ("ours, true motion (--known-motion, stabilised data)", ["known-motion/results.csv"], 100, 0),
     ("ours, true motion, continued", ["known-motion-continued/results.csv"], 100, 1200),
