@@ -375,7 +375,7 @@ def test_unsup_128_pose_lr_table_matches_its_outputs():
         "D + O → O, ": ("finetune-warmup-1000", "ft-128-warm1000"),
     }
     labels = [k for k in table if re.fullmatch(r"(recipe, |D \+ O → O, )?[\d,]+ steps", k)]
-    assert len(labels) == 18
+    assert len(labels) == 20
     for label in labels:
         prefix = next(p for p in runs if p and label.startswith(p)) if label[0].isalpha() else ""
         run = folder / runs[prefix][0]

@@ -16,6 +16,11 @@
 # SMOOTH_WEIGHT: λ of the smooth loss (`run --smooth-weight`; 0: the photometric term alone).
 # POSE_WARMUP: first steps with the DepthNet frozen, PoseNet alone learning (`run --pose-warmup`).
 # POSE_LR: PoseNet's learning rate (`run --pose-lr`; default: the recipe's, as the depth network's).
+# SCENES: rotating scenes to generate for orientation's training (240): more than 240 go to
+# data/stillbox-rot-128-SCENES (the 240 scenes and more of the same seed; a scene's split depends
+# only on its index), scored on the test split of data/stillbox-rot-128 all the same, so the
+# constant and the test sequences stay those of every other run here.
+# THREADS: torch CPU threads of the training run (1).
 # RESUME=1: continue the run in RUNS/MODE/O to EPOCHS (`run --resume`, the same options; more
 # epochs than it was started with are allowed, the recipe having no milestones).
 set -euo pipefail
@@ -26,19 +31,26 @@ B=${STILLBOX_BENCH:-stillbox-bench}
 G=${STILLBOX_GEN:-stillbox-gen}
 case $MODE in
 orientation)
-    DATA=data/stillbox-rot-128
-    [ -f "$DATA/manifest.parquet" ] || $G --preset stillbox-rotating --res 128 --scenes 240 --out "$DATA"
+    EVAL_DATA=data/stillbox-rot-128
+    [ -f "$EVAL_DATA/manifest.parquet" ] ||
+        $G --preset stillbox-rotating --res 128 --scenes 240 --out "$EVAL_DATA"
+    SCENES=${SCENES:-240}
+    DATA=$EVAL_DATA
+    [ "$SCENES" = 240 ] || DATA=$EVAL_DATA-$SCENES
+    [ -f "$DATA/manifest.parquet" ] ||
+        $G --preset stillbox-rotating --res 128 --scenes "$SCENES" --out "$DATA"
     OPTIONS="--pose orientation" ;;
 known-motion)
     DATA=data/stillbox-128
     [ -f "$DATA/manifest.parquet" ] || $G --res 128 --scenes 600 --out "$DATA"
+    EVAL_DATA=$DATA
     OPTIONS="--known-motion" ;;
 *) echo "run.sh: MODE must be orientation or known-motion, got '$MODE'" >&2; exit 2 ;;
 esac
 mkdir -p "$RUNS/kept"
 # shellcheck disable=SC2086
 $B run depthnet-unsup $OPTIONS --data "$DATA" --batch-size 16 --epoch-size 100 \
-    --epochs "$EPOCHS" --ckpt-every 100000 --threads 1 --quiet --out "$RUNS/O" \
+    --epochs "$EPOCHS" --ckpt-every 100000 --threads "${THREADS:-1}" --quiet --out "$RUNS/O" \
     ${PRETRAINED:+--pretrained "$PRETRAINED"} ${SMOOTH_WEIGHT:+--smooth-weight "$SMOOTH_WEIGHT"} \
     ${POSE_WARMUP:+--pose-warmup "$POSE_WARMUP"} ${POSE_LR:+--pose-lr "$POSE_LR"} \
     ${RESUME:+--resume} &
@@ -58,9 +70,9 @@ wait $run
 [ "$(rows)" -gt "$seen" ] && cp "$RUNS/O/checkpoints/last.pt" "$RUNS/kept/epoch_$(rows).pt"
 for k in ${EVAL_EPOCHS:-$(seq 1 "$(rows)")}; do
     out=$RUNS/eval-epoch_$k
-    [ -f "$out/results.csv" ] || $B eval-sequences --ckpt "$RUNS/kept/epoch_$k.pt" --data "$DATA" \
-        --quiet --out "$out"
+    [ -f "$out/results.csv" ] || $B eval-sequences --ckpt "$RUNS/kept/epoch_$k.pt" \
+        --data "$EVAL_DATA" --quiet --out "$out"
     if [ "$MODE" = known-motion ] && [ ! -f "$out-pairs/summary.json" ]; then
-        $B eval --ckpt "$RUNS/kept/epoch_$k.pt" --data "$DATA" --out "$out-pairs"
+        $B eval --ckpt "$RUNS/kept/epoch_$k.pt" --data "$EVAL_DATA" --out "$out-pairs"
     fi
 done
