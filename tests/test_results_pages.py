@@ -360,24 +360,17 @@ def test_table_5_2_128_page_matches_its_outputs():
     assert [float(v.replace(",", "")) for v in re.findall(r"[\d,]+(?= s)", quoted)] == seconds
 
 
-def test_unsup_128_pose_lr_table_matches_its_outputs():
-    """The --pose-lr, recipe and D + O → O runs' checkpoints: both pair rules and the test cosine
-    from each run's merged results.csv, the ratio to the constant, the training cosine of the last
-    100 steps from steps.csv and the validation MAE from metrics.csv; and the pose-generalisation
-    table from its three outputs."""
+def _check_unsup_128_checkpoints(section: str, runs: dict[str, tuple[str, str]]) -> int:
+    """Every "[prefix]N steps" row of ``section``'s tables against its run (``runs``: row prefix →
+    (folder here, run.sh's runs folder)): both pair rules and the test cosine from the run's
+    merged results.csv, the ratio to the constant, the training cosine of the last 100 steps from
+    steps.csv and the validation MAE from metrics.csv. Returns the number of rows checked."""
     folder = RESULTS / "unsup-128"
-    section = (folder / "README.md").read_text().split("## The author's code and a faster")[1]
-    section = section.split("\n## ")[0]
     table = _table(section)
-    runs = {
-        "": ("orientation-pose-lr", "unsup-128-poselr"),
-        "recipe, ": ("orientation-recipe", "unsup-128-recipe"),
-        "D + O → O, ": ("finetune-warmup-1000", "ft-128-warm1000"),
-    }
-    labels = [k for k in table if re.fullmatch(r"(recipe, |D \+ O → O, )?[\d,]+ steps", k)]
-    assert len(labels) == 20
+    named = "|".join(re.escape(p) for p in runs if p)
+    labels = [k for k in table if re.fullmatch(rf"({named})?[\d,]+ steps", k)]
     for label in labels:
-        prefix = next(p for p in runs if p and label.startswith(p)) if label[0].isalpha() else ""
+        prefix = next((p for p in runs if p and label.startswith(p)), "")
         run = folder / runs[prefix][0]
         scored = _sequence_rows(run / "results.csv")
         constant = float(scored[("upright", "", "GT", "False")]["mae"])
@@ -395,6 +388,22 @@ def test_unsup_128_pose_lr_table_matches_its_outputs():
         _agree(_numbers(test), _cosine(rule))
         _agree(_numbers(training), _training_cosine(run / "steps.csv", steps - 100, steps))
         _agree(_numbers(cells[5]), [validation[steps]])
+    return len(labels)
+
+
+def test_unsup_128_pose_lr_table_matches_its_outputs():
+    """The --pose-lr, recipe and D + O → O runs' checkpoints (`_check_unsup_128_checkpoints`),
+    the D + O → O run's supervised start, and the pose-generalisation table from its three
+    outputs."""
+    folder = RESULTS / "unsup-128"
+    section = (folder / "README.md").read_text().split("## The author's code and a faster")[1]
+    section = section.split("\n## ")[0]
+    runs = {
+        "": ("orientation-pose-lr", "unsup-128-poselr"),
+        "recipe, ": ("orientation-recipe", "unsup-128-recipe"),
+        "D + O → O, ": ("finetune-warmup-1000", "ft-128-warm1000"),
+    }
+    assert _check_unsup_128_checkpoints(section, runs) == 20
     # the D + O -> O run's supervised start: its test MAE on stabilised pairs and its best step
     again = json.loads((folder / "supervised-again" / "summary.json").read_text())
     quoted = section.split("test MAE on its stabilised test pairs ")[1].split(" m")[0]
@@ -423,6 +432,30 @@ def test_unsup_128_pose_lr_table_matches_its_outputs():
         ]
         _agree(_numbers(training), [train[k] for k in (100, 300, 400, 600)])
         _agree(_numbers(test), [min(tests), max(tests)])
+
+
+def test_unsup_128_more_scenes_table_matches_its_outputs():
+    """The recipe on 1,519 training scenes: its checkpoints (`_check_unsup_128_checkpoints`), the
+    training-cosine range, the seconds of training and validation and the ratios quoted."""
+    folder = RESULTS / "unsup-128"
+    section = (folder / "README.md").read_text().split("## More training scenes")[1]
+    section = section.split("\n## ")[0]
+    runs = {"1,519 scenes, ": ("orientation-1900", "unsup-128-1900")}
+    assert _check_unsup_128_checkpoints(section, runs) == 4
+    run = folder / "orientation-1900"
+    assert json.loads((run / "config.json").read_text())["data"] == "data/stillbox-rot-128-1900"
+    per_100 = [_training_cosine(run / "steps.csv", k, k + 100)[0] for k in range(0, 1900, 100)]
+    quoted = section.split("training-batch cosine stayed between ")[1].split(" per 100")[0]
+    _agree(_numbers(quoted.replace(" and ", " ")), [min(per_100), max(per_100)])
+    seconds = sum(float(r["seconds"]) for r in _csv(run / "metrics.csv"))
+    assert f"took {seconds:,.0f} s of training and validation" in section
+    scored = _sequence_rows(run / "results.csv")
+    constant = float(scored[("upright", "", "GT", "False")]["mae"])
+    last = "runs/unsup-128-1900/orientation/kept/epoch_20.pt"
+    ratios = [float(scored[("upright", last, rule, "False")]["mae"]) / constant
+              for rule in ("P (fixed pair)", "P")]  # fmt: skip
+    page = (folder / "README.md").read_text()
+    assert f"{ratios[0]:.1f}-{ratios[1]:.1f} times the constant's error" in page
 
 
 def test_longest_scaling_run_matches_its_summary():
