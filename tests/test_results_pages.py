@@ -436,7 +436,8 @@ def test_unsup_128_pose_lr_table_matches_its_outputs():
 
 def test_unsup_128_more_scenes_table_matches_its_outputs():
     """The recipe on 1,519 training scenes: its checkpoints (`_check_unsup_128_checkpoints`), the
-    training-cosine range, the seconds of training and validation and the ratios quoted."""
+    training-cosine range, the seconds of training and validation and the ratios quoted; and
+    PoseNet's cosines against the true depth on those scenes (pose_generalisation.py's output)."""
     folder = RESULTS / "unsup-128"
     section = (folder / "README.md").read_text().split("## More training scenes")[1]
     section = section.split("\n## ")[0]
@@ -456,6 +457,18 @@ def test_unsup_128_more_scenes_table_matches_its_outputs():
               for rule in ("P (fixed pair)", "P")]  # fmt: skip
     page = (folder / "README.md").read_text()
     assert f"{ratios[0]:.1f}-{ratios[1]:.1f} times the constant's error" in page
+    # PoseNet against the true depth on those scenes: both cosines at each step of the table
+    text = (folder / "pose-generalisation" / "rotating-1519-scenes-2000-steps.txt").read_text()
+    found = re.findall(
+        r"after (\d+) steps: training cosine (-?[\d.]+), test cosine (-?[\d.]+)", text
+    )
+    cosines = {int(k): (float(a), float(b)) for k, a, b in found}
+    table = _table(section)
+    steps = [int(c.replace(",", "")) for c in table["steps"][1:]]
+    _agree(_numbers("|".join(table["training cosine, last 200 steps"][1:])),
+           [cosines[k][0] for k in steps])  # fmt: skip
+    _agree(_numbers("|".join(table["test cosine (64 windows of unseen scenes)"][1:])),
+           [cosines[k][1] for k in steps])  # fmt: skip
 
 
 def test_longest_scaling_run_matches_its_summary():
