@@ -442,7 +442,7 @@ def test_unsup_128_more_scenes_table_matches_its_outputs():
     section = (folder / "README.md").read_text().split("## More training scenes")[1]
     section = section.split("\n## ")[0]
     runs = {"1,519 scenes, ": ("orientation-1900", "unsup-128-1900")}
-    assert _check_unsup_128_checkpoints(section, runs) == 4
+    assert _check_unsup_128_checkpoints(section, runs) == 5
     run = folder / "orientation-1900"
     assert json.loads((run / "config.json").read_text())["data"] == "data/stillbox-rot-128-1900"
     per_100 = [_training_cosine(run / "steps.csv", k, k + 100)[0] for k in range(0, 1900, 100)]
