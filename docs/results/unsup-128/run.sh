@@ -16,10 +16,10 @@
 # SMOOTH_WEIGHT: λ of the smooth loss (`run --smooth-weight`; 0: the photometric term alone).
 # POSE_WARMUP: first steps with the DepthNet frozen, PoseNet alone learning (`run --pose-warmup`).
 # POSE_LR: PoseNet's learning rate (`run --pose-lr`; default: the recipe's, as the depth network's).
-# SCENES: rotating scenes to generate for orientation's training (240): more than 240 go to
-# data/stillbox-rot-128-SCENES (the 240 scenes and more of the same seed; a scene's split depends
-# only on its index), scored on the test split of data/stillbox-rot-128 all the same, so the
-# constant and the test sequences stay those of every other run here.
+# SCENES: rotating scenes to train orientation on (240). Another count trains on
+# data/stillbox-rot-128-SCENES (scenes of the same seed: a scene and its split depend only on its
+# index) and still scores on the test split of data/stillbox-rot-128, so the constant and the
+# test sequences stay those of every other run here (with SCENES above 240, none of them trained on).
 # THREADS: torch CPU threads of the training run (1).
 # RESUME=1: continue the run in RUNS/MODE/O to EPOCHS (`run --resume`, the same options; more
 # epochs than it was started with are allowed, the recipe having no milestones).
