@@ -19,7 +19,7 @@
 # SCENES: rotating scenes to train orientation on (240). Another count trains on
 # data/stillbox-rot-128-SCENES (scenes of the same seed: a scene and its split depend only on its
 # index) and still scores on the test split of data/stillbox-rot-128, so the constant and the
-# test sequences stay those of every other run here (with SCENES above 240, none of them trained on).
+# test sequences stay those of every other run here (none of them in any training split).
 # THREADS: torch CPU threads of the training run (1).
 # RESUME=1: continue the run in RUNS/MODE/O to EPOCHS (`run --resume`, the same options; more
 # epochs than it was started with are allowed, the recipe having no milestones).
