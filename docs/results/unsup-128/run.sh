@@ -15,6 +15,8 @@
 # optimiser), e.g. a known-motion run's last epoch to continue it past its planned epochs.
 # SMOOTH_WEIGHT: λ of the smooth loss (`run --smooth-weight`; 0: the photometric term alone).
 # POSE_WARMUP: first steps with the DepthNet frozen, PoseNet alone learning (`run --pose-warmup`).
+# LR: the learning rate (`run --lr`; default: the recipe's, 2e-4), e.g. lower to continue a run
+# from its last epoch with PRETRAINED.
 # POSE_LR: PoseNet's learning rate (`run --pose-lr`; default: the recipe's, as the depth network's).
 # SCENES: rotating scenes to train orientation on (240). Another count trains on
 # data/stillbox-rot-128-SCENES (scenes of the same seed: a scene and its split depend only on its
@@ -53,7 +55,7 @@ $B run depthnet-unsup $OPTIONS --data "$DATA" --batch-size 16 --epoch-size 100 \
     --epochs "$EPOCHS" --ckpt-every 100000 --threads "${THREADS:-1}" --quiet --out "$RUNS/O" \
     ${PRETRAINED:+--pretrained "$PRETRAINED"} ${SMOOTH_WEIGHT:+--smooth-weight "$SMOOTH_WEIGHT"} \
     ${POSE_WARMUP:+--pose-warmup "$POSE_WARMUP"} ${POSE_LR:+--pose-lr "$POSE_LR"} \
-    ${RESUME:+--resume} &
+    ${LR:+--lr "$LR"} ${RESUME:+--resume} &
 run=$!
 rows() { echo $(($(cat "$RUNS/O/metrics.csv" 2>/dev/null | wc -l) - 1)); }
 seen=0
