@@ -9,6 +9,7 @@ import csv
 import json
 import math
 import re
+import statistics
 from pathlib import Path
 
 import pytest
@@ -442,9 +443,18 @@ def test_unsup_128_more_scenes_table_matches_its_outputs():
     section = (folder / "README.md").read_text().split("## More training scenes")[1]
     section = section.split("\n## ")[0]
     runs = {"1,519 scenes, ": ("orientation-1900", "unsup-128-1900")}
-    assert _check_unsup_128_checkpoints(section, runs) == 5
+    assert _check_unsup_128_checkpoints(section, runs) == 14
     run = folder / "orientation-1900"
     assert json.loads((run / "config.json").read_text())["data"] == "data/stillbox-rot-128-1900"
+    epochs = [float(r["seconds"]) for r in _csv(run / "metrics.csv")]
+    median = statistics.median(epochs[24:])  # the second continuation's epochs
+    assert f"{len(epochs)} epochs at the median epoch's {median:.0f} s are" in section
+    assert f"are {len(epochs) * median:,.0f} s" in section
+    scored = _sequence_rows(run / "results.csv")
+    late = [_cosine(scored[("upright", f"runs/unsup-128-1900/orientation/kept/epoch_{k}.pt",
+                            "P", "False")])[0] for k in (44, 48, 52, 56, 58)]  # fmt: skip
+    flat = " ".join(section.split())
+    assert f"test cosine to {min(late):.2f}-{max(late):.2f} from 4,400 steps on" in flat
     per_100 = [_training_cosine(run / "steps.csv", k, k + 100)[0] for k in range(0, 1900, 100)]
     quoted = section.split("training-batch cosine stayed between ")[1].split(" per 100")[0]
     _agree(_numbers(quoted.replace(" and ", " ")), [min(per_100), max(per_100)])
