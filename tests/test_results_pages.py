@@ -442,8 +442,18 @@ def test_unsup_128_more_scenes_table_matches_its_outputs():
     folder = RESULTS / "unsup-128"
     section = (folder / "README.md").read_text().split("## More training scenes")[1]
     section = section.split("\n## ")[0]
-    runs = {"1,519 scenes, ": ("orientation-1900", "unsup-128-1900")}
-    assert _check_unsup_128_checkpoints(section, runs) == 14
+    runs = {
+        "1,519 scenes, ": ("orientation-1900", "unsup-128-1900"),
+        "lr 6e-5 from 5,800, ": ("orientation-1900-lr", "unsup-128-1900-lr"),
+    }
+    assert _check_unsup_128_checkpoints(section, runs) == 16
+    lowered = json.loads((folder / "orientation-1900-lr" / "config.json").read_text())
+    assert (lowered["lr"], lowered["pretrained"]) == (
+        6e-5,
+        "runs/unsup-128-1900/orientation/kept/epoch_58.pt",
+    )
+    seconds = sum(float(r["seconds"]) for r in _csv(folder / "orientation-1900-lr" / "metrics.csv"))
+    assert f"{seconds:,.0f} s) did not get nearer" in section
     run = folder / "orientation-1900"
     assert json.loads((run / "config.json").read_text())["data"] == "data/stillbox-rot-128-1900"
     epochs = [float(r["seconds"]) for r in _csv(run / "metrics.csv")]

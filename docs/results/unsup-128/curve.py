@@ -34,6 +34,7 @@ SERIES = (
     ("ours, recipe, run again", ["orientation-recipe/results.csv"], 100, 0),
     ("ours, --pose-lr 1e-3", ["orientation-pose-lr/results.csv"], 100, 0),
     ("ours, recipe on 1,519 training scenes", ["orientation-1900/results.csv"], 100, 0),
+    ("ours, 1,519 scenes, lr 6e-5 from 5,800", ["orientation-1900-lr/results.csv"], 100, 5800),
     ("ours, D + O → O, 1,000-step PoseNet warm-up", ["finetune-warmup-1000/results.csv"], 100, 0),
     ("author's code (--supervise-pose)", ["../reference/unsupervised/128px/results.csv"], 200, 0),
     ("ours, true motion (--known-motion, stabilised data)", ["known-motion/results.csv"], 100, 0),
