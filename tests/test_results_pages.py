@@ -436,12 +436,15 @@ def test_unsup_128_pose_lr_table_matches_its_outputs():
 
 
 def test_unsup_128_more_scenes_table_matches_its_outputs():
-    """The recipe on 1,519 training scenes: its checkpoints (`_check_unsup_128_checkpoints`), the
-    training-cosine range, the seconds of training and validation and the ratios quoted; and
-    PoseNet's cosines against the true depth on those scenes (pose_generalisation.py's output)."""
+    """The recipe on 1,519 training scenes and its continuation at lr 6e-5: their checkpoints
+    (`_check_unsup_128_checkpoints`), the continuation's settings and seconds, the
+    training-cosine range, the late test cosines, the seconds of training and validation (in all,
+    and the median epoch's) and the ratios quoted; and PoseNet's cosines against the true depth on
+    those scenes (pose_generalisation.py's output)."""
     folder = RESULTS / "unsup-128"
     section = (folder / "README.md").read_text().split("## More training scenes")[1]
     section = section.split("\n## ")[0]
+    flat = " ".join(section.split())  # the page's text without its line breaks
     runs = {
         "1,519 scenes, ": ("orientation-1900", "unsup-128-1900"),
         "lr 6e-5 from 5,800, ": ("orientation-1900-lr", "unsup-128-1900-lr"),
@@ -453,23 +456,22 @@ def test_unsup_128_more_scenes_table_matches_its_outputs():
         "runs/unsup-128-1900/orientation/kept/epoch_58.pt",
     )
     seconds = sum(float(r["seconds"]) for r in _csv(folder / "orientation-1900-lr" / "metrics.csv"))
-    assert f"{seconds:,.0f} s) did not get nearer" in section
+    assert f"{seconds:,.0f} s) did not get nearer" in flat
     run = folder / "orientation-1900"
     assert json.loads((run / "config.json").read_text())["data"] == "data/stillbox-rot-128-1900"
     epochs = [float(r["seconds"]) for r in _csv(run / "metrics.csv")]
     median = statistics.median(epochs[24:])  # the second continuation's epochs
-    assert f"{len(epochs)} epochs at the median epoch's {median:.0f} s are" in section
-    assert f"are {len(epochs) * median:,.0f} s" in section
+    assert f"{len(epochs)} epochs at the median epoch's {median:.0f} s are" in flat
+    assert f"are {len(epochs) * median:,.0f} s" in flat
     scored = _sequence_rows(run / "results.csv")
     late = [_cosine(scored[("upright", f"runs/unsup-128-1900/orientation/kept/epoch_{k}.pt",
                             "P", "False")])[0] for k in (44, 48, 52, 56, 58)]  # fmt: skip
-    flat = " ".join(section.split())
     assert f"test cosine to {min(late):.2f}-{max(late):.2f} from 4,400 steps on" in flat
     per_100 = [_training_cosine(run / "steps.csv", k, k + 100)[0] for k in range(0, 1900, 100)]
     quoted = section.split("training-batch cosine stayed between ")[1].split(" per 100")[0]
     _agree(_numbers(quoted.replace(" and ", " ")), [min(per_100), max(per_100)])
     seconds = sum(float(r["seconds"]) for r in _csv(run / "metrics.csv"))
-    assert f"took {seconds:,.0f} s of training and validation" in section
+    assert f"took {seconds:,.0f} s of training and validation" in flat
     scored = _sequence_rows(run / "results.csv")
     constant = float(scored[("upright", "", "GT", "False")]["mae"])
     last = "runs/unsup-128-1900/orientation/kept/epoch_20.pt"
