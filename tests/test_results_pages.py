@@ -12,6 +12,7 @@ import re
 import statistics
 from pathlib import Path
 
+import numpy
 import pytest
 
 RESULTS = Path(__file__).resolve().parents[1] / "docs" / "results"
@@ -505,7 +506,7 @@ def test_unsup_128_more_scenes_table_matches_its_outputs():
         "1,519 scenes, ": ("orientation-1900", "unsup-128-1900"),
         "lr 6e-5 from 5,800, ": ("orientation-1900-lr", "unsup-128-1900-lr"),
     }
-    assert _check_unsup_128_checkpoints(section, runs) == 16
+    assert _check_unsup_128_checkpoints(section, runs) == 27
     lowered = json.loads((folder / "orientation-1900-lr" / "config.json").read_text())
     assert (lowered["lr"], lowered["pretrained"]) == (
         6e-5,
@@ -535,6 +536,7 @@ def test_unsup_128_more_scenes_table_matches_its_outputs():
               for rule in ("P (fixed pair)", "P")]  # fmt: skip
     page = (folder / "README.md").read_text()
     assert f"{ratios[0]:.1f}-{ratios[1]:.1f} times the constant's error" in page
+    _check_past_the_budget(flat, run)
     # PoseNet against the true depth on those scenes: both cosines at each step of the table
     text = (folder / "pose-generalisation" / "rotating-1519-scenes-2000-steps.txt").read_text()
     found = re.findall(
@@ -547,6 +549,42 @@ def test_unsup_128_more_scenes_table_matches_its_outputs():
            [cosines[k][0] for k in steps])  # fmt: skip
     _agree(_numbers("|".join(table["test cosine (64 windows of unseen scenes)"][1:])),
            [cosines[k][1] for k in steps])  # fmt: skip
+
+
+def _check_past_the_budget(flat: str, run: Path) -> None:
+    """The continuation of the 1,519-scene run to 8,000 steps, as the page sums it up: its
+    seconds and median epoch, and over the checkpoints from 5,200 steps on, each rule's range,
+    mean, share past −25 %, the slope of a straight line through them and the spread about it."""
+    epochs = [float(r["seconds"]) for r in _csv(run / "metrics.csv")][58:]
+    assert f"{sum(epochs):,.0f} s of training and validation, median epoch " in flat
+    assert f"median epoch {statistics.median(epochs):.0f} s on one thread" in flat
+    scored = _sequence_rows(run / "results.csv")
+    constant = float(scored[("upright", "", "GT", "False")]["mae"])
+    late = [k for k in range(52, 81) if ("upright", f"runs/unsup-128-1900/orientation/kept/"
+            f"epoch_{k}.pt", "P", "False") in scored]  # fmt: skip
+    assert f"Over the {len(late)} checkpoints scored from 5,200 to 8,000 steps" in flat
+    slopes = []
+    for rule, quote in (("P", 'under "P" ranges from '), ("P (fixed pair)", "fixed pair from ")):
+        mae = [float(scored[("upright", f"runs/unsup-128-1900/orientation/kept/epoch_{k}.pt",
+                             rule, "False")]["mae"]) for k in late]  # fmt: skip
+        quoted = flat.split(quote)[1].split(";")[0].replace("\u2212", "-")
+        shown = f"{min(mae):.2f} to {max(mae):.2f} m (mean {statistics.mean(mae):.2f} m, "
+        assert quoted.startswith(shown + f"{100 * (statistics.mean(mae) / constant - 1):.1f} %")
+        past = [k for k, v in zip(late, mae, strict=True) if v <= 0.75 * constant]
+        if rule == "P":
+            named = [f"{k * 100:,}" for k in past]
+            assert f"past −25 % at {', '.join(named[:-1])} and {named[-1]} steps" in flat
+            between = sum(0.75 * constant < v <= 0.8 * constant for v in mae)
+            short = sum(v > 0.8 * constant for v in mae)
+            assert (f"of the {len(late)} checkpoints, {between} are between −20 and −25 % under "
+                    f'"P", {len(past)} past −25 % and {short} short of −20 %') in flat  # fmt: skip
+        else:
+            assert f"past −25 % at {len(past)} of them" in flat
+        fit = numpy.polyfit([k * 100 for k in late], mae, 1)
+        slopes.append(fit[0] * 1000)
+        spread = numpy.std(mae - numpy.polyval(fit, [k * 100 for k in late]))
+        assert 0.5 <= spread <= 0.7
+    assert f"rises by {slopes[0]:.2f} m" in flat and f"and {slopes[1]:.2f} m (fixed pair)" in flat
 
 
 def test_longest_scaling_run_matches_its_summary():
