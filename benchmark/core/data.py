@@ -10,6 +10,13 @@ Flow networks train on the same pairs with an optical-flow target (``target="flo
 flow of the static scene at the second frame's pixels towards the first frame, from the second
 frame's depth and the known translation (benchmark.core.flow).
 
+On a rotating dataset (scenes whose camera turns) each pair's first frame, the reference, is
+first stabilised to the second frame's orientation with the known rotation (the thesis' "D + O"
+supervised DepthNet, §5.3): resampled through ``K·R·K⁻¹`` (``R``: the second frame's camera axes
+→ the first's), its pixels the first frame does not see 0 in the normalised input (mid-grey), as
+the unsupervised networks' stabilised references (benchmark.unsupervised.rotation); the pair's
+translation is then expressed in the second frame's axes. Stabilised scenes are read as they are.
+
 Every random draw comes from ``numpy.random.default_rng([seed, epoch, index])``: the same seed
 gives the same batches whatever the worker count, and a resumed run continues the same sequence.
 """
@@ -36,7 +43,7 @@ from stillbox_gen.packed import (
     record_member,
 )
 
-from .flow import flow_from_depth
+from .flow import flow_from_depth, warp_homography
 
 STILL_TARGET = 100.0  # target for identical frames: "no motion => infinitely far", saturated
 CACHE_LIMIT_BYTES = 8 * 1024**3
@@ -72,8 +79,9 @@ def check_packed_shards(root: str | os.PathLike) -> None:
 def load_scenes(root: str | os.PathLike, split: str, rotations: bool = False) -> list[Scene]:
     """Scenes of one split, in index order (:func:`read_scenes`: a dataset folder or its pack).
     Raises DataError naming the faulty file (or shard), or the record whose file name would
-    lead outside ``root``, or, unless ``rotations`` (depthnet-unsup*'s ``--pose``), a scene
-    with camera rotations (these baselines need a stabilised dataset)."""
+    lead outside ``root``, or, unless ``rotations``, a scene with camera rotations (the readers
+    that stabilise them: PairDataset, depthnet-unsup*'s ``--pose``; the others need a stabilised
+    dataset)."""
     scenes = read_scenes(root, split)
     for s in scenes:
         if not s.stabilised and not rotations:
@@ -168,9 +176,9 @@ class PairDataset(torch.utils.data.Dataset):
 
     Items are dicts: ``input`` (6, H, W) float32, ``target`` (H, W) float32 metres (depth of the
     second frame, rescaled and clipped to ``depth_range`` in train mode, raw in eval mode),
-    ``translation`` (3,) float32 metres (camera motion from first to second frame, camera axes,
-    after flips), ``K`` (3, 3) (of the flipped images: a flip mirrors the principal point),
-    ``scene``, ``frames`` (i1, i2), ``flips`` (horizontal, vertical).
+    ``translation`` (3,) float32 metres (camera motion from first to second frame, in the second
+    frame's camera axes, after flips), ``K`` (3, 3) (of the flipped images: a flip mirrors the
+    principal point), ``scene``, ``frames`` (i1, i2), ``flips`` (horizontal, vertical).
 
     ``target="flow"`` (train mode only): ``target`` is instead the (2, H, W) float32 flow in
     pixels at the second frame's pixels towards the first frame (position in frame i1 minus
@@ -235,19 +243,41 @@ class PairDataset(torch.utils.data.Dataset):
 
     def _camera(
         self, k: int, i1: int, i2: int, flip_h: bool, flip_v: bool
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """Translation (3,) and K (3, 3) of the (flipped) pair, float64."""
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """Translation (3,) and K (3, 3) of the (flipped) pair, and the homography (3, 3) that
+        stabilises its (flipped) reference (None: a stabilised scene, or i1 == i2), float64."""
         scene = self.store.scenes[k]
-        translation = scene.translation(i1, i2)
         K = scene.K.copy()
+        homography = None
+        if scene.stabilised:
+            translation = scene.translation(i1, i2)
+        else:  # module doc: the reference turned to the target's axes
+            translation = -scene.relative_pose(i1, i2)[:3, 3]
+            if i1 != i2:
+                turn = scene.relative_pose(i2, i1)[:3, :3]  # target axes -> reference axes
+                homography = K @ turn @ np.linalg.inv(K)
         h, w = self.store.height, self.store.width
-        if flip_h:
-            translation = translation * np.array([-1.0, 1.0, 1.0])
-            K[0, 2] = w - 1 - K[0, 2]
-        if flip_v:
-            translation = translation * np.array([1.0, -1.0, 1.0])
-            K[1, 2] = h - 1 - K[1, 2]
-        return translation, K
+        for axis, size, flip in ((0, w, flip_h), (1, h, flip_v)):
+            if not flip:
+                continue
+            translation = translation * np.where(np.arange(3) == axis, -1.0, 1.0)
+            K[axis, 2] = size - 1 - K[axis, 2]
+            if homography is not None:  # the same map between the mirrored pixels
+                mirror = np.eye(3)
+                mirror[axis, axis], mirror[axis, 2] = -1.0, size - 1
+                homography = mirror @ homography @ mirror
+        return translation, K, homography
+
+    @staticmethod
+    def _stabilise(pairs: np.ndarray, homographies: list[np.ndarray | None]) -> None:
+        """In place: the reference (channels 0-2) of each normalised pair of ``pairs`` (N, 6, H,
+        W) float32 with a homography, turned to its target's orientation (module doc)."""
+        for j, homography in enumerate(homographies):
+            if homography is None:
+                continue
+            reference = torch.from_numpy(pairs[j : j + 1, :3])
+            turned, seen = warp_homography(reference, torch.from_numpy(homography)[None])
+            pairs[j, :3] = torch.where(seen[:, None], turned, 0.0)[0].numpy()
 
     def __getitem__(self, i: int) -> dict:
         k, i1, i2, flip_h, flip_v = self._draw(i, self.epoch)
@@ -256,7 +286,7 @@ class PairDataset(torch.utils.data.Dataset):
         if self.mode == "eval":
             target = target.copy()
         img1, img2 = self.store.rgb(k, i1), self.store.rgb(k, i2)
-        translation, K = self._camera(k, i1, i2, flip_h, flip_v)
+        translation, K, homography = self._camera(k, i1, i2, flip_h, flip_v)
         if flip_h:
             img1, img2, target = img1[:, ::-1], img2[:, ::-1], target[:, ::-1]
         if flip_v:
@@ -266,6 +296,7 @@ class PairDataset(torch.utils.data.Dataset):
             target = flow_from_depth(depth, torch.from_numpy(K), torch.from_numpy(-translation))
             target = target.numpy()
         x = np.concatenate([normalise(img1), normalise(img2)], axis=0)
+        self._stabilise(x[None], [homography])
         return {
             "input": torch.from_numpy(np.ascontiguousarray(x)),
             "target": torch.from_numpy(np.ascontiguousarray(target, dtype=np.float32)),
@@ -287,12 +318,14 @@ class PairDataset(torch.utils.data.Dataset):
         frames = np.empty((n, 2, 3, h, w), np.uint8)
         target = np.empty((n, h, w), np.float32)
         translation, K = np.empty((n, 3)), np.empty((n, 3, 3))
+        homographies = []
         for j, (k, i1, i2, flip_h, flip_v) in enumerate(draws):
             view = (slice(None, None, -1 if flip_v else 1), slice(None, None, -1 if flip_h else 1))
             frames[j, 0] = self.store.rgb(k, i1)[view].transpose(2, 0, 1)
             frames[j, 1] = self.store.rgb(k, i2)[view].transpose(2, 0, 1)
             target[j] = self._target(k, i1, i2)[view]
-            translation[j], K[j] = self._camera(k, i1, i2, flip_h, flip_v)
+            translation[j], K[j], homography = self._camera(k, i1, i2, flip_h, flip_v)
+            homographies.append(homography)
         if self.target == "flow":  # per pair, as __getitem__ (one call is not faster here)
             depth = torch.from_numpy(target.astype(np.float64))
             flows = [
@@ -305,6 +338,7 @@ class PairDataset(torch.utils.data.Dataset):
         x -= 0.5
         x /= 0.2
         x = x.reshape(n, 6, h, w)
+        self._stabilise(x, homographies)
         return {
             "input": torch.from_numpy(x),
             "target": torch.from_numpy(target),

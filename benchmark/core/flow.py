@@ -29,6 +29,8 @@ in the dtype of their input (pass float64 for exact geometry).
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import torch
 import torch.nn.functional as F
@@ -208,6 +210,23 @@ def flow_errors(pred: torch.Tensor, gt: torch.Tensor) -> dict[str, torch.Tensor]
     for t in OUTLIER_PIXELS:
         out[f"out{t}"] = share(err > t)
     return out
+
+
+def warp_homography(
+    image: torch.Tensor, homography: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``image`` ``(B, C, H, W)`` resampled through a homography of its pixels:
+    ``out[:, :, p] = image[:, :, π(H·(x, y, 1))]``, ``homography`` ``(B, 3, 3)`` pixels → pixels
+    (pass float64 for exact geometry). :func:`warp`'s bilinear sampling; its mask also drops the
+    pixels whose ``H·p`` lies behind (third coordinate ≤ 0). With ``H = K·R·K⁻¹`` this is a frame
+    seen from the same centre with another orientation (``R``: the new axes → the frame's)."""
+    b, _, h, w = image.shape
+    xs, ys = pixel_grid(h, w, homography)
+    p = torch.stack((xs, ys, torch.ones_like(xs))).reshape(3, h * w)
+    q = homography @ p  # (B, 3, H·W)
+    z = torch.where(q[:, 2] > 0, q[:, 2], torch.full_like(q[:, 2], math.nan))
+    moved = torch.stack((q[:, 0] / z - p[0], q[:, 1] / z - p[1]), 1)
+    return warp(image, moved.reshape(b, 2, h, w).to(image.dtype))
 
 
 def warp(image_b: torch.Tensor, flow: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

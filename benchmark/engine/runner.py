@@ -163,8 +163,7 @@ def score_checkpoint(
     model.to(dev)
     shift = ck.get("shift", NOMINAL_SHIFT)
     if split_data is None or split_data[2].shift != shift:
-        video = registry.MODELS[name].kind.target is registry.Target.VIDEO
-        split, scenes = eval_scenes(data, split, shift, ckpt, video)
+        split, scenes = eval_scenes(data, split, shift, ckpt, rotations=True)  # pairs stabilised
         check_frame_size(ck, model, frame_size(scenes), data, ckpt)  # before reading frames
         split_data = (
             split,
@@ -349,10 +348,9 @@ def train_and_score(cfg: TrainConfig) -> dict | None:
     out = Path(cfg.out)
     trainer = Trainer(cfg)
     scored = []  # the test split, read (every frame) before the run folder is made
-    video = registry.MODELS[cfg.model].kind.target is registry.Target.VIDEO
     trainer.setup(
         check=lambda: scored.append(
-            eval_split(Path(cfg.data), "test", cfg.shift, cfg.progress, rotations=video)
+            eval_split(Path(cfg.data), "test", cfg.shift, cfg.progress, rotations=True)
         )
     )
     t0 = time.perf_counter()

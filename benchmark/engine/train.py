@@ -218,9 +218,9 @@ class Trainer(TrainingLoop):
                 "depth_range",
                 f"must be LO,HI metres with 0 <= LO < HI <= {MAX_DEPTH:g}, got {lo:g},{hi:g}",
             )
-        video = self.kind.target is registry.Target.VIDEO  # may learn rotations (--pose)
-        train_scenes = load_scenes(Path(cfg.data), "train", rotations=video)
-        val_scenes = load_scenes(Path(cfg.data), "val", rotations=video)
+        # rotating scenes: PairDataset stabilises its pairs, depthnet-unsup*'s --pose its sequences
+        train_scenes = load_scenes(Path(cfg.data), "train", rotations=True)
+        val_scenes = load_scenes(Path(cfg.data), "val", rotations=True)
         if not train_scenes or not val_scenes:
             raise FieldError(
                 "data",

@@ -2,23 +2,28 @@
 # Table 5.2 at 128 px at the setting where an unsupervised row first beat the constant plane:
 # each unsupervised row trained from scratch on the 1,519 training scenes of the 1,900-scene
 # rotating set for 5,800 steps of 16 five-frame sequences (58 epochs of 100 steps), the
-# supervised DepthNet for 30 epochs of 32 stabilised pairs; all scored together by
+# supervised DepthNet for 30 epochs of 151 steps of 32 pairs: on the stabilised
+# data/stillbox-128 (supervised) and, as the thesis' "D + O", on the same rotating training scenes
+# with each pair's reference stabilised by the known orientation (supervised-rotating); all
+# scored together by
 # eval-sequences on the 416 test sequences of data/stillbox-rot-128 (pair rule "P", fixed pair,
 # PoseNet's cosine). Run from the repository root:
 #   docs/results/table-5.2-128/run-5800.sh [ROWS]
-# ROWS: the rows to train, of supervised orientation occlusion 6dof sfmlearner (all of them).
+# ROWS: the rows to train, of supervised supervised-rotating orientation occlusion 6dof sfmlearner
+# (all of them).
 # Each unsupervised row is docs/results/unsup-128/run.sh MODE 58 runs/unsup-128-1900 (its
 # checkpoints kept and scored every 4 epochs); a row already at 58 epochs is not trained again,
 # an unfinished one continues (RESUME=1). The table is written once every row is done.
 # STILLBOX_BENCH / STILLBOX_GEN: the commands to use; THREADS: torch CPU threads per run (2).
 set -euo pipefail
-ROWS=${*:-supervised orientation occlusion 6dof sfmlearner}
+ROWS=${*:-supervised supervised-rotating orientation occlusion 6dof sfmlearner}
 B=${STILLBOX_BENCH:-stillbox-bench}
 G=${STILLBOX_GEN:-stillbox-gen}
 HERE=$(dirname "$0")
 EPOCHS=58
 RUNS=runs/unsup-128-1900
 SUPERVISED=runs/sup-128-30
+ROTATING=runs/sup-128-rot-30
 export THREADS=${THREADS:-2} SCENES=1900 EVAL_EPOCHS="8 12 16 20 24 28 32 36 40 44 48 52 56 58"
 epochs_done() { echo $(($(cat "$1/metrics.csv" 2>/dev/null | wc -l) - 1)); }
 for row in $ROWS; do
@@ -31,6 +36,14 @@ for row in $ROWS; do
                 --threads "$THREADS" --quiet --out "$SUPERVISED" \
                 $([ -f "$SUPERVISED/checkpoints/last.pt" ] && echo --resume)
         fi ;;
+    supervised-rotating)
+        [ -f data/stillbox-rot-128-1900/manifest.parquet ] || $G --preset stillbox-rotating \
+            --res 128 --scenes 1900 --out data/stillbox-rot-128-1900  # as run.sh's SCENES=1900
+        if [ "$(epochs_done "$ROTATING")" -lt 30 ]; then
+            $B run depthnet --data data/stillbox-rot-128-1900 --batch-size 32 --epochs 30 \
+                --epoch-size 151 --threads "$THREADS" --quiet --out "$ROTATING" \
+                $([ -f "$ROTATING/checkpoints/last.pt" ] && echo --resume)
+        fi ;;
     orientation | occlusion | 6dof | sfmlearner)
         done_=$(epochs_done "$RUNS/$row/O")
         [ "$done_" -ge "$EPOCHS" ] && continue
@@ -39,7 +52,7 @@ for row in $ROWS; do
     *) echo "run-5800.sh: unknown row '$row'" >&2; exit 2 ;;
     esac
 done
-ckpts=(--ckpt "$SUPERVISED/checkpoints/best.pt")
+ckpts=(--ckpt "$SUPERVISED/checkpoints/best.pt" --ckpt "$ROTATING/checkpoints/best.pt")
 for row in orientation occlusion 6dof sfmlearner; do
     ckpt=$RUNS/$row/kept/epoch_$EPOCHS.pt
     [ -f "$ckpt" ] || { echo "run-5800.sh: $ckpt missing; the table waits for every row" >&2; exit 0; }
