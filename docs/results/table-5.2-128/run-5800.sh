@@ -52,9 +52,9 @@ for row in $ROWS; do
     *) echo "run-5800.sh: unknown row '$row'" >&2; exit 2 ;;
     esac
 done
-ckpts=(--ckpt "$SUPERVISED/checkpoints/best.pt" --ckpt "$ROTATING/checkpoints/best.pt")
-for row in orientation occlusion 6dof sfmlearner; do
-    ckpt=$RUNS/$row/kept/epoch_$EPOCHS.pt
+ckpts=()
+for ckpt in "$SUPERVISED/checkpoints/best.pt" "$ROTATING/checkpoints/best.pt" \
+    "$RUNS"/{orientation,occlusion,6dof,sfmlearner}/kept/epoch_$EPOCHS.pt; do
     [ -f "$ckpt" ] || { echo "run-5800.sh: $ckpt missing; the table waits for every row" >&2; exit 0; }
     ckpts+=(--ckpt "$ckpt")
 done
