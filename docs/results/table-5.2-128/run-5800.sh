@@ -3,11 +3,10 @@
 # each unsupervised row trained from scratch on the 1,519 training scenes of the 1,900-scene
 # rotating set for 5,800 steps of 16 five-frame sequences (58 epochs of 100 steps), the
 # supervised DepthNet for 30 epochs of 151 steps of 32 pairs: on the stabilised
-# data/stillbox-128 (supervised) and, as the thesis' "D + O", on the same rotating training scenes
-# with each pair's reference stabilised by the known orientation (supervised-rotating); all
-# scored together by
-# eval-sequences on the 416 test sequences of data/stillbox-rot-128 (pair rule "P", fixed pair,
-# PoseNet's cosine). Run from the repository root:
+# data/stillbox-128 (supervised) and, as the thesis' "D + O", on the same rotating training
+# scenes with each pair's reference stabilised by the known orientation (supervised-rotating);
+# all scored together by eval-sequences on the 416 test sequences of data/stillbox-rot-128
+# (pair rule "P", fixed pair, PoseNet's cosine). Run from the repository root:
 #   docs/results/table-5.2-128/run-5800.sh [ROWS]
 # ROWS: the rows to train, of supervised supervised-rotating orientation occlusion 6dof sfmlearner
 # (all of them).
@@ -26,24 +25,23 @@ SUPERVISED=runs/sup-128-30
 ROTATING=runs/sup-128-rot-30
 export THREADS=${THREADS:-2} SCENES=1900 EVAL_EPOCHS="8 12 16 20 24 28 32 36 40 44 48 52 56 58"
 epochs_done() { echo $(($(cat "$1/metrics.csv" 2>/dev/null | wc -l) - 1)); }
+supervised() {  # DATA OUT [OPTIONS]: 30 epochs of 32, continued when unfinished
+    local data=$1 out=$2
+    shift 2
+    [ "$(epochs_done "$out")" -ge 30 ] && return
+    $B run depthnet --data "$data" --batch-size 32 --epochs 30 "$@" --threads "$THREADS" \
+        --quiet --out "$out" $([ -f "$out/checkpoints/last.pt" ] && echo --resume)
+}
 for row in $ROWS; do
     case $row in
     supervised)
         [ -f data/stillbox-128/manifest.parquet ] ||
             $G --res 128 --scenes 600 --out data/stillbox-128
-        if [ "$(epochs_done "$SUPERVISED")" -lt 30 ]; then
-            $B run depthnet --data data/stillbox-128 --batch-size 32 --epochs 30 \
-                --threads "$THREADS" --quiet --out "$SUPERVISED" \
-                $([ -f "$SUPERVISED/checkpoints/last.pt" ] && echo --resume)
-        fi ;;
+        supervised data/stillbox-128 "$SUPERVISED" ;;  # an epoch: one pass, 151 steps
     supervised-rotating)
         [ -f data/stillbox-rot-128-1900/manifest.parquet ] || $G --preset stillbox-rotating \
             --res 128 --scenes 1900 --out data/stillbox-rot-128-1900  # as run.sh's SCENES=1900
-        if [ "$(epochs_done "$ROTATING")" -lt 30 ]; then
-            $B run depthnet --data data/stillbox-rot-128-1900 --batch-size 32 --epochs 30 \
-                --epoch-size 151 --threads "$THREADS" --quiet --out "$ROTATING" \
-                $([ -f "$ROTATING/checkpoints/last.pt" ] && echo --resume)
-        fi ;;
+        supervised data/stillbox-rot-128-1900 "$ROTATING" --epoch-size 151 ;;
     orientation | occlusion | 6dof | sfmlearner)
         done_=$(epochs_done "$RUNS/$row/O")
         [ "$done_" -ge "$EPOCHS" ] && continue
