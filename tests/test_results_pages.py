@@ -363,10 +363,10 @@ def test_table_5_2_128_page_matches_its_outputs():
 
 
 def test_table_5_2_128_at_5800_steps_matches_its_outputs():
-    """The 5,800-step Table 5.2 at 128 px: the constant and supervised rows from the supervised
-    run's eval-sequences, the "O" row from the 1,519-scene run's step-5,800 checkpoint (test and
-    training cosines), the stabilised-test comparison, the supervised run's seconds, best epoch
-    and test MAE on its own pairs."""
+    """The 5,800-step Table 5.2 at 128 px: the constant and both supervised rows from their runs'
+    eval-sequences, the "O" row from the 1,519-scene run's step-5,800 checkpoint (test and
+    training cosines), the margins quoted, the stabilised-test comparison, the supervised runs'
+    seconds, best epochs and test MAE on their own pairs."""
     folder = RESULTS / "table-5.2-128"
     section = (folder / "README.md").read_text().split("## 5,800 steps per row")[1]
     section = section.split("\n## ")[0]
@@ -374,6 +374,8 @@ def test_table_5_2_128_at_5800_steps_matches_its_outputs():
     table = _table(section)
     supervised = _sequence_rows(folder / "5800" / "supervised" / "results.csv")
     best = "runs/sup-128-30/checkpoints/best.pt"
+    rotating = _sequence_rows(folder / "5800" / "supervised-rotating" / "results.csv")
+    rot_best = "runs/sup-128-rot-30/checkpoints/best.pt"
     o_run = RESULTS / "unsup-128" / "orientation-1900"
     o_ckpt = "runs/unsup-128-1900/orientation/kept/epoch_58.pt"
     o_scored = _sequence_rows(o_run / "results.csv")
@@ -381,6 +383,11 @@ def test_table_5_2_128_at_5800_steps_matches_its_outputs():
            _mae_mre_mle(supervised[("upright", "", "GT", "False")]))  # fmt: skip
     rows = {
         "supervised DepthNet (P, D + O)": (supervised, best, None),
+        "supervised DepthNet (P, D + O), trained on the rotating scenes": (
+            rotating,
+            rot_best,
+            None,
+        ),
         "unsupervised DepthNet (P, O, occlusion module off)": (o_scored, o_ckpt, o_run),
     }
     for label, (scored, ckpt, run) in rows.items():
@@ -394,15 +401,39 @@ def test_table_5_2_128_at_5800_steps_matches_its_outputs():
         _agree(_numbers(test), _cosine(rule))
         _agree(_numbers(training),
                _training_cosine(run / "steps.csv", 5700, 5800) if run else [])  # fmt: skip
+
+    # the rotating-trained row against "O" and the constant, as quoted in bold and below
+    def row_mae(scored: dict, ckpt: str, rule: str) -> float:
+        return float(scored[("upright", ckpt, rule, "False")]["mae"])
+
+    sup_p, sup_f = (row_mae(rotating, rot_best, r) for r in ("P", "P (fixed pair)"))
+    o_p, o_f = (row_mae(o_scored, o_ckpt, r) for r in ("P", "P (fixed pair)"))
+    constant = float(supervised[("upright", "", "GT", "False")]["mae"])
+    assert (f"{sup_p:.2f} against {o_p:.2f} m under \"P\" and {sup_f:.2f} against {o_f:.2f} m "
+            f"with the fixed pair (−{100 * (1 - sup_p / constant):.1f} % and "
+            f"−{100 * (1 - sup_f / constant):.1f} %") in flat  # fmt: skip
+    assert f'margin over "O" ({o_p - sup_p:.2f} m)' in flat
+    assert f"with the fixed pair ({o_f - sup_f:.2f} m) it is not" in flat
+    picked = rotating[("upright", rot_best, "P", "False")]["shifts_used"]
+    assert (
+        f"costs this row {sup_p - sup_f:.2f} m: it picks the 1-frame pair on "
+        + (f"{dict(s.split(':') for s in picked.split())['1']} of 416 sequences")
+        in flat
+    )
     # both networks on the stabilised test split, as quoted ("P" / fixed pair), and the constant
     stable = _sequence_rows(folder / "5800" / "stabilised-test" / "results.csv")
     mae = {k: float(r["mae"]) for k, r in stable.items()}
-    quoted = flat.split("the order is the thesis': ")[1].split(" constant")[0]
+    quoted = flat.split("the order is the thesis' for both supervised rows: ")[1].split(" constant")[0]
     _agree(_numbers(quoted), [mae[("upright", best, "P", "False")],
                               mae[("upright", best, "P (fixed pair)", "False")],
                               mae[("upright", o_ckpt, "P", "False")],
                               mae[("upright", o_ckpt, "P (fixed pair)", "False")]])  # fmt: skip
     assert f"constant {mae[('upright', '', 'GT', 'False')]:.2f} m" in flat
+    stable_rot = _sequence_rows(
+        folder / "5800" / "supervised-rotating" / "stabilised-test" / "results.csv"
+    )
+    quoted = flat.split("the rotating-trained supervised row ")[1].split(" m")[0]
+    _agree(_numbers(quoted), [row_mae(stable_rot, rot_best, r) for r in ("P", "P (fixed pair)")])
     # the supervised run: 30 epochs, the best validation at the last, its seconds and test MAE
     epochs = _csv(folder / "5800" / "supervised" / "metrics.csv")
     assert len(epochs) == 30 and min(epochs, key=lambda r: float(r["val_mae"])) is epochs[-1]
@@ -416,6 +447,21 @@ def test_table_5_2_128_at_5800_steps_matches_its_outputs():
     before = json.loads((RESULTS / "unsup-128" / "supervised-again" / "summary.json").read_text())
     assert (f"(`summary.json`) is {own['metrics']['mae']:.2f} m, against "
             f"{before['metrics']['mae']:.2f} m") in flat  # fmt: skip
+    # the rotating-trained run: 30 epochs of 151 steps, the best validation at the quoted epoch
+    epochs = _csv(folder / "5800" / "supervised-rotating" / "metrics.csv")
+    best_epoch = min(epochs, key=lambda r: float(r["val_mae"]))
+    assert len(epochs) == 30 and int(epochs[-1]["step"]) == 4530
+    label = "supervised DepthNet (P, D + O), trained on the rotating scenes"
+    assert (f"{int(best_epoch['step']):,} steps of 32 on 1,519 rotating scenes (`best.pt`, "
+            f"epoch {int(float(best_epoch['epoch']))} of 30)") in table[label][1]  # fmt: skip
+    seconds = sum(float(r["seconds"]) for r in epochs)
+    assert f"rotating-trained run took {seconds:,.0f} s" in flat
+    own = json.loads((folder / "5800" / "supervised-rotating" / "summary.json").read_text())
+    assert own["training_state"]["global_step"] == int(best_epoch["step"])
+    report = (folder / "5800" / "supervised-rotating" / "summary.md").read_text()
+    pairs = int(report.split("Split `test`: ")[1].split(" pairs")[0])
+    assert (f"({pairs:,} of {own['scenes']} scenes) it scores "
+            f"{own['metrics']['mae']:.2f} m") in flat  # fmt: skip
 
 
 def _check_unsup_128_checkpoints(section: str, runs: dict[str, tuple[str, str]]) -> int:
