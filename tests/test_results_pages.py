@@ -423,7 +423,7 @@ def test_table_5_2_128_at_5800_steps_matches_its_outputs():
     # both networks on the stabilised test split, as quoted ("P" / fixed pair), and the constant
     stable = _sequence_rows(folder / "5800" / "stabilised-test" / "results.csv")
     mae = {k: float(r["mae"]) for k, r in stable.items()}
-    quoted = flat.split("the order is the thesis' for both supervised rows: ")[1].split(" constant")[0]
+    quoted = flat.split("thesis' for both supervised rows: ")[1].split(" constant")[0]
     _agree(_numbers(quoted), [mae[("upright", best, "P", "False")],
                               mae[("upright", best, "P (fixed pair)", "False")],
                               mae[("upright", o_ckpt, "P", "False")],
