@@ -414,10 +414,10 @@ def test_table_5_2_128_at_5800_steps_matches_its_outputs():
             f"−{100 * (1 - sup_f / constant):.1f} %") in flat  # fmt: skip
     assert f'margin over "O" ({o_p - sup_p:.2f} m)' in flat
     assert f"with the fixed pair ({o_f - sup_f:.2f} m) it is not" in flat
-    picked = rotating[("upright", rot_best, "P", "False")]["shifts_used"]
+    picked = rotating[("upright", rot_best, "P", "False")]["shifts_used"]  # "1:216 2:146 ..."
+    one_frame = dict(gap.split(":") for gap in picked.split())["1"]
     assert (
-        f"costs this row {sup_p - sup_f:.2f} m: it picks the 1-frame pair on "
-        + (f"{dict(s.split(':') for s in picked.split())['1']} of 416 sequences")
+        f"costs this row {sup_p - sup_f:.2f} m: it picks the 1-frame pair on {one_frame} of 416"
         in flat
     )
     # both networks on the stabilised test split, as quoted ("P" / fixed pair), and the constant
