@@ -732,23 +732,29 @@ def direct_warp(
     n = int(torch.ceil(torch.where(ok, d, 0).max()).item())  # [u₀, u₀ + d) holds ≤ ⌈d⌉ integers
     dump = b * h * w  # an extra z-buffer cell for what is not painted (no boolean indexing)
     offset = (torch.arange(b, device=depth.device) * h * w).reshape(b, 1, 1)
-    targets = []
-    for i in range(n):
-        for j in range(n):
-            uu, vv = first_u + j, first_v + i
-            paint = ok & (uu < u0 + d) & (vv < v0 + d)
-            paint &= (uu >= 0) & (uu <= w - 1) & (vv >= 0) & (vv <= h - 1)
-            target = offset + vv.clamp(0, h - 1).long() * w + uu.clamp(0, w - 1).long()
-            targets.append(torch.where(paint, target, dump).reshape(-1))
-    flat = torch.cat(targets)
-    zs = torch.where(ok, z, float("inf")).reshape(-1).repeat(n * n)
+
+    def painted(i: int, j: int) -> torch.Tensor:
+        """The z-buffer cell each target pixel paints at offset (j, i) of its square, or dump."""
+        uu, vv = first_u + j, first_v + i
+        paint = ok & (uu < u0 + d) & (vv < v0 + d)
+        paint &= (uu >= 0) & (uu <= w - 1) & (vv >= 0) & (vv <= h - 1)
+        target = offset + vv.clamp(0, h - 1).long() * w + uu.clamp(0, w - 1).long()
+        return torch.where(paint, target, dump).reshape(-1)
+
+    # One offset at a time, twice (the nearest depth, then the smallest source at it): memory of
+    # one map per offset instead of ⌈d⌉² of them (10 GB for 64 maps of 128 px at MAX_SQUARE).
+    offsets = [(i, j) for i in range(n) for j in range(n)]
+    zs = torch.where(ok, z, float("inf")).reshape(-1)
     zbuf = torch.full((dump + 1,), float("inf"), dtype=depth.dtype, device=depth.device)
-    zbuf = zbuf.scatter_reduce(0, flat, zs, "amin")
-    nearest = torch.where(zs == zbuf[flat], flat, dump)  # on ties, the smallest source wins
-    source = torch.arange(h * w, device=depth.device).repeat(b * n * n)
+    for i, j in offsets:
+        zbuf.scatter_reduce_(0, painted(i, j), zs, "amin")
+    source = torch.arange(h * w, device=depth.device).repeat(b)
     index = torch.full((dump + 1,), h * w, dtype=torch.int64, device=depth.device)
-    index = index.scatter_reduce(0, nearest, source, "amin")[:dump]
-    index = torch.where(index == h * w, -1, index)
+    for i, j in offsets:
+        flat = painted(i, j)
+        nearest = torch.where(zs == zbuf[flat], flat, dump)  # on ties, the smallest source wins
+        index.scatter_reduce_(0, nearest, source, "amin")
+    index = torch.where(index[:dump] == h * w, -1, index[:dump])
     return zbuf[:dump].reshape(b, 1, h, w), index.reshape(b, 1, h, w)
 
 
