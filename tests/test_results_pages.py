@@ -434,6 +434,17 @@ def test_table_5_2_128_at_5800_steps_matches_its_outputs():
     )
     quoted = flat.split("the rotating-trained supervised row ")[1].split(" m")[0]
     _agree(_numbers(quoted), [row_mae(stable_rot, rot_best, r) for r in ("P", "P (fixed pair)")])
+    # the same two rows on all 177 test scenes of the 1,900-scene set, as quoted
+    wide = _sequence_rows(folder / "5800" / "test-177" / "results.csv")
+    wide_mae = {k: float(r["mae"]) for k, r in wide.items()}
+    maes = [wide_mae[("upright", c, r, "False")] for c in (rot_best, o_ckpt)
+            for r in ("P", "P (fixed pair)")]  # fmt: skip
+    wide_constant = wide_mae[("upright", "", "GT", "False")]
+    quoted = _numbers(flat.split("supervised (rotating) ")[1].split(" The margins")[0])
+    _agree(quoted[:5], [*maes, wide_constant])
+    assert quoted[5:] == [round(100 * (m / wide_constant - 1), 1) for m in maes]
+    assert f"margins are {maes[2] - maes[0]:.2f} and {maes[3] - maes[1]:.2f} m" in flat
+    assert f"({int(wide[('upright', '', 'GT', 'False')]['sequences']):,} sequences" in flat
     # the supervised run: 30 epochs, the best validation at the last, its seconds and test MAE
     epochs = _csv(folder / "5800" / "supervised" / "metrics.csv")
     assert len(epochs) == 30 and min(epochs, key=lambda r: float(r["val_mae"])) is epochs[-1]
@@ -752,3 +763,63 @@ def test_toy_study_page_matches_its_results_json_and_the_thesis():
             ours, quoted = _ours_and_thesis(cells[6 + i])
             _agree(ours, [b["le"]["horizon"], b["le"]["flower"]])
             assert quoted == [th["horizon"], th["flower"]]
+
+
+def test_unsup_128_what_holds_the_o_row_matches_its_outputs():
+    """The "O" row's checkpoints on 177 test scenes, on 100 training against 100 test scenes, and
+    the training loss at the step-5,800 checkpoint: every number quoted from its output."""
+    folder = RESULTS / "unsup-128"
+    section = (folder / "README.md").read_text().split("### What holds the")[1].split("\n#")[0]
+    flat = " ".join(section.split())
+    run = folder / "orientation-1900"
+    ckpt = "runs/unsup-128-1900/orientation/kept/epoch_{}.pt".format
+
+    def mae(path: Path, key: tuple[str, str, str, str]) -> float:
+        return float(_sequence_rows(path)[key]["mae"])
+
+    def change(path: Path, epoch: int, rule: str) -> float:
+        """Percent change of the MAE of ``epoch``'s checkpoint against the constant plane."""
+        constant = mae(path, ("upright", "", "GT", "False"))
+        return 100 * (mae(path, ("upright", ckpt(epoch), rule, "False")) / constant - 1)
+
+    rules = ("P", "P (fixed pair)")
+    wide = RESULTS / "table-5.2-128" / "5800" / "test-177" / "results.csv"
+    wide_o = run / "test-177" / "results.csv"
+    narrow = run / "results.csv"
+    assert f"constant of {mae(wide, ('upright', '', 'GT', 'False')):.2f} m" in flat
+    quoted = flat.split("19.69 m: ")[1].split(" So on a test set")[0]
+    changes = [change(wide, 58, "P"), *(change(narrow, 58, r) for r in rules),
+               change(wide_o, 64, "P"), *(change(narrow, 64, r) for r in rules),
+               *(change(wide_o, 80, r) for r in rules),
+               *(change(narrow, 80, r) for r in rules)]  # fmt: skip
+    assert _numbers(quoted) == [round(c, 1) for c in changes]
+    assert abs(change(wide, 58, "P") - change(wide, 58, "P (fixed pair)")) < 0.05  # "alike"
+    assert abs(change(wide_o, 64, "P") - change(wide_o, 64, "P (fixed pair)")) < 0.05
+    # DepthNet on 100 training and 100 test scenes; PoseNet's cosine and share above 0.9 there
+    split = {
+        name: run / "train-and-test-scenes" / f"{name}-100" / "results.csv"
+        for name in ("train", "test")
+    }
+    quoted = _numbers(flat.split("checkpoint scores ")[1].split(": the depth")[0])
+    for name, (pct, net, constant) in zip(split, (quoted[:3], quoted[3:]), strict=True):
+        assert pct == round(change(split[name], 58, "P"), 1)
+        _agree([net, constant], [mae(split[name], ("upright", ckpt(58), "P", "False")),
+                                 mae(split[name], ("upright", "", "GT", "False"))])  # fmt: skip
+    rows = [_sequence_rows(path)[("upright", ckpt(58), "P", "False")] for path in split.values()]
+    quoted = flat.split("its cosine is ")[1].split(" above 0.9")[0]
+    assert _numbers(quoted) == [round(float(r["pose_cosine"]), 2) for r in rows]
+    assert [int(v) for v in re.findall(r"(\d+) %", quoted)] == [
+        round(100 * float(r["pose_cosine_gt_0.9"])) for r in rows
+    ]
+    # the training loss at candidates, with the true motion and with the run's PoseNet
+    losses = {}
+    for line in (run / "loss_at_candidates-5800.md").read_text().splitlines()[3:]:
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        losses[cells[0], cells[1]] = float(cells[4])
+    quoted = flat.split("the truth's loss is ")[1].split(" Where PoseNet")[0]
+    _agree(_numbers(quoted), [losses["truth", "true"], losses["the checkpoint's depth", "true"],
+                              losses["the checkpoint's depth", "PoseNet's"],
+                              losses["truth", "PoseNet's"]])  # fmt: skip
+    better = 100 * (1 - losses["truth", "true"] / losses["the checkpoint's depth", "true"])
+    worse = 100 * (losses["truth", "PoseNet's"] / losses["the checkpoint's depth", "PoseNet's"] - 1)
+    assert round(better, -1) == 10 and round(worse) == 2 and "about 10 % better" in flat
