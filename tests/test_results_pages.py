@@ -379,6 +379,16 @@ def test_table_5_2_128_at_5800_steps_matches_its_outputs():
     o_run = RESULTS / "unsup-128" / "orientation-1900"
     o_ckpt = "runs/unsup-128-1900/orientation/kept/epoch_58.pt"
     o_scored = _sequence_rows(o_run / "results.csv")
+    occ_run = folder / "5800" / "occlusion"
+    occ_ckpt = "runs/unsup-128-1900/occlusion/kept/epoch_{}.pt".format
+
+    def with_module(path: Path) -> dict:
+        """A module-on run's rows (occlusion True but the constant's), keyed as the others'."""
+        rows = _sequence_rows(path)
+        assert all((k[3] == "True") == bool(k[1]) for k in rows)
+        return {(*k[:3], "False"): r for k, r in rows.items()}
+
+    occ_scored = with_module(occ_run / "results.csv")
     _agree(_numbers(table["constant plane (GT median)"][2]),
            _mae_mre_mle(supervised[("upright", "", "GT", "False")]))  # fmt: skip
     rows = {
@@ -389,6 +399,7 @@ def test_table_5_2_128_at_5800_steps_matches_its_outputs():
             None,
         ),
         "unsupervised DepthNet (P, O, occlusion module off)": (o_scored, o_ckpt, o_run),
+        "unsupervised DepthNet (P, O, occlusion module on)": (occ_scored, occ_ckpt(58), occ_run),
     }
     for label, (scored, ckpt, run) in rows.items():
         cells = table[label]
@@ -434,6 +445,28 @@ def test_table_5_2_128_at_5800_steps_matches_its_outputs():
     )
     quoted = flat.split("the rotating-trained supervised row ")[1].split(" m")[0]
     _agree(_numbers(quoted), [row_mae(stable_rot, rot_best, r) for r in ("P", "P (fixed pair)")])
+    # the occlusion row against "O", its curve every 400 steps, on 177 scenes, and its seconds
+    occ_p, occ_f = (row_mae(occ_scored, occ_ckpt(58), r) for r in ("P", "P (fixed pair)"))
+    assert (f"scores {occ_p:.2f} / {occ_f:.2f} m** (\"P\" / fixed pair, "
+            f"−{100 * (1 - occ_p / constant):.1f} % / −{100 * (1 - occ_f / constant):.1f} %), "
+            f"{occ_p - o_p:.2f} m behind") in flat  # fmt: skip
+    curve = {16: "{} m at 1,600 steps", 40: "from 4,000 steps ({} m)", 48: "{} m at 4,800",
+             56: "{} m at 5,600"}  # fmt: skip
+    for epoch, quoted in curve.items():
+        assert quoted.format(f"{row_mae(occ_scored, occ_ckpt(epoch), 'P'):.2f}") in flat
+    first_below = min(k for k in range(8, 59, 4) if ("upright", occ_ckpt(k), "P", "False") in
+                      occ_scored and row_mae(occ_scored, occ_ckpt(k), "P") < constant)  # fmt: skip
+    assert first_below == 40
+    cosine = float(occ_scored[("upright", occ_ckpt(16), "P", "False")]["pose_cosine"])
+    assert f"test cosine {cosine:.2f})" in flat
+    wide_occ = with_module(occ_run / "test-177" / "results.csv")
+    quoted = flat.split("On the 177 test scenes: ")[1].split(" m")[0]
+    _agree(_numbers(quoted), [row_mae(wide_occ, occ_ckpt(58), r) for r in ("P", "P (fixed pair)")])
+    epochs = _csv(occ_run / "metrics.csv")
+    assert len(epochs) == 58 and int(epochs[-1]["step"]) == 5800
+    seconds = [float(r["seconds"]) for r in epochs]
+    assert f"Training took {sum(seconds):,.0f} s" in flat
+    assert f"median epoch {statistics.median(seconds):.0f} s" in flat
     # the same two rows on all 177 test scenes of the 1,900-scene set, as quoted
     wide = _sequence_rows(folder / "5800" / "test-177" / "results.csv")
     wide_mae = {k: float(r["mae"]) for k, r in wide.items()}
