@@ -32,16 +32,29 @@ def _csv(path: Path) -> list[dict]:
     return list(csv.DictReader(path.read_text().splitlines()))
 
 
+class _Quoted(float):
+    """A number read from a page, with the decimals it was printed with ("0.930": 3)."""
+
+    decimals: int
+
+    def __new__(cls, text: str) -> _Quoted:
+        number = super().__new__(cls, text)
+        number.decimals = len(text.split(".")[1]) if "." in text else 0
+        return number
+
+
 def _numbers(text: str) -> list[float]:
     """Every decimal number of a cell (signed; the pages' minus is U+2212), thousands separators
     and bold marks removed."""
     plain = text.replace(",", "").replace("*", "").replace("\u2212", "-")
-    return [float(v) for v in re.findall(r"(?<![\d.])-?\d+\.\d+", plain)]  # 6.72-10.15: a range
+    return [_Quoted(v) for v in re.findall(r"(?<![\d.])-?\d+\.\d+", plain)]  # 6.72-10.15: a range
 
 
 def _shown(value: float, like: float) -> float:
     """``value`` rounded to the decimals ``like`` was printed with (2 unless it has 3)."""
-    decimals = len(repr(like).split(".")[1]) if "." in repr(like) else 0
+    decimals = getattr(like, "decimals", None)
+    if decimals is None:
+        decimals = len(repr(like).split(".")[1]) if "." in repr(like) else 0
     return round(value, max(decimals, 2))
 
 
