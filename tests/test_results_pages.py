@@ -521,6 +521,65 @@ def test_table_5_2_128_at_5800_steps_matches_its_outputs():
             f"{own['metrics']['mae']:.2f} m") in flat  # fmt: skip
 
 
+def _percent_of(value: float, constant: float) -> str:
+    """``value`` against ``constant`` as the pages print it: "−4.2 %" (better), "+3.1 %"."""
+    change = 100 * (value / constant - 1)
+    return f"{'−' if change < 0 else '+'}{abs(change):.1f} %"
+
+
+def test_table_5_2_128_6dof_row_matches_its_outputs():
+    """The 6-DoF row of the 5,800-step Table 5.2 at 128 px, trained for one session's budget:
+    its cells from the last scored checkpoint, its budget from metrics.csv, the curve every 400
+    steps, the "O" row at the same steps, the 177-scene pair, seconds and median epoch."""
+    folder = RESULTS / "table-5.2-128"
+    section = (folder / "README.md").read_text().split("## 5,800 steps per row")[1]
+    section = section.split("\n## ")[0]
+    flat = " ".join(section.split())
+    cells = _table(section)["unsupervised DepthNet (P, no supervision: 6-DoF PoseNet)"]
+    run = folder / "5800" / "6dof"
+    epochs = _csv(run / "metrics.csv")
+    last, steps = len(epochs), int(epochs[-1]["step"])
+    assert steps == 100 * last and f"{steps:,} steps of 16" in cells[1]
+    ckpt = "runs/unsup-128-1900/6dof/kept/epoch_{}.pt".format
+    scored = _sequence_rows(run / "results.csv")
+
+    def mae(epoch: int, rule: str = "P", rows: dict = scored) -> float:
+        return float(rows[("upright", ckpt(epoch), rule, "False")]["mae"])
+
+    rule = scored[("upright", ckpt(last), "P", "False")]
+    _agree(_numbers(cells[2]), _mae_mre_mle(rule))
+    fixed = scored[("upright", ckpt(last), "P (fixed pair)", "False")]
+    _agree(_numbers(cells[3]), _mae_mre_mle(fixed))
+    test, _, training = cells[4].partition(" / ")
+    _agree(_numbers(test), _cosine(rule))
+    _agree(_numbers(training), _training_cosine(run / "steps.csv", steps - 100, steps))
+    constant = float(scored[("upright", "", "GT", "False")]["mae"])
+    p, f = mae(last), mae(last, "P (fixed pair)")
+    assert (f"scores {p:.2f} / {f:.2f} m after {steps:,} steps** (\"P\" / fixed pair, "
+            f"{_percent_of(p, constant)} / {_percent_of(f, constant)}") in flat  # fmt: skip
+    # the curve under "P" every 400 steps from 800, and the "O" row at 800 and at the last step
+    curve = flat.split("every 400 steps from 800: ")[1].split(" m")[0]
+    every = [k for k in range(8, last + 1, 4)]
+    assert every[-1] == last
+    _agree(_numbers(curve), [mae(k) for k in every])
+    quoted = flat.split("test cosine rises meanwhile (every 400 steps from 800: ")[1]
+    _agree(_numbers(quoted.split(")")[0]), [_cosine(scored[("upright", ckpt(k), "P", "False")])[0]
+                                             for k in every])  # fmt: skip
+    gaps = [mae(k) - constant for k in every]
+    assert f"the depth stays {min(gaps):.1f}-{max(gaps):.1f} m above the constant" in flat
+    o_rows = _sequence_rows(RESULTS / "unsup-128" / "orientation-1900" / "results.csv")
+    o_ckpt = "runs/unsup-128-1900/orientation/kept/epoch_{}.pt".format
+    o_at = [float(o_rows[("upright", o_ckpt(k), "P", "False")]["mae"]) for k in (8, last)]
+    assert (f'the "O" row was at {o_at[0]:.2f} m at 800 steps and {o_at[1]:.2f} m at '
+            f"{steps:,}") in flat  # fmt: skip
+    wide = _sequence_rows(run / "test-177" / "results.csv")
+    quoted = flat.split("6-DoF row on the 177 test scenes: ")[1].split(" m")[0]
+    _agree(_numbers(quoted), [mae(last, r, wide) for r in ("P", "P (fixed pair)")])
+    seconds = [float(r["seconds"]) for r in epochs]
+    assert f"trained in {sum(seconds):,.0f} s" in flat
+    assert f"median epoch {statistics.median(seconds):.0f} s on two threads" in flat
+
+
 def _check_unsup_128_checkpoints(section: str, runs: dict[str, tuple[str, str]]) -> int:
     """Every "[prefix]N steps" row of ``section``'s tables against its run (``runs``: row prefix →
     (folder here, run.sh's runs folder)): both pair rules and the test cosine from the run's
