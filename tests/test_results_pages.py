@@ -375,15 +375,26 @@ def test_table_5_2_128_page_matches_its_outputs():
     assert [float(v.replace(",", "")) for v in re.findall(r"[\d,]+(?= s)", quoted)] == seconds
 
 
+def _percent_of(value: float, constant: float) -> str:
+    """``value`` against ``constant`` as the pages print it: "−4.2 %" (better), "+3.1 %"."""
+    change = 100 * (value / constant - 1)
+    return f"{'−' if change < 0 else '+'}{abs(change):.1f} %"
+
+
+def _table_5800_section() -> tuple[str, str]:
+    """The 5,800-step section of the 128 px Table 5.2 page, as written and on one line."""
+    page = RESULTS / "table-5.2-128" / "README.md"
+    section = page.read_text().split("## 5,800 steps per row")[1].split("\n## ")[0]
+    return section, " ".join(section.split())
+
+
 def test_table_5_2_128_at_5800_steps_matches_its_outputs():
     """The 5,800-step Table 5.2 at 128 px: the constant and both supervised rows from their runs'
     eval-sequences, the "O" row from the 1,519-scene run's step-5,800 checkpoint (test and
     training cosines), the margins quoted, the stabilised-test comparison, the supervised runs'
     seconds, best epochs and test MAE on their own pairs."""
     folder = RESULTS / "table-5.2-128"
-    section = (folder / "README.md").read_text().split("## 5,800 steps per row")[1]
-    section = section.split("\n## ")[0]
-    flat = " ".join(section.split())
+    section, flat = _table_5800_section()
     table = _table(section)
     supervised = _sequence_rows(folder / "5800" / "supervised" / "results.csv")
     best = "runs/sup-128-30/checkpoints/best.pt"
@@ -461,7 +472,7 @@ def test_table_5_2_128_at_5800_steps_matches_its_outputs():
     # the occlusion row against "O", its curve every 400 steps, on 177 scenes, and its seconds
     occ_p, occ_f = (row_mae(occ_scored, occ_ckpt(58), r) for r in ("P", "P (fixed pair)"))
     assert (f"scores {occ_p:.2f} / {occ_f:.2f} m** (\"P\" / fixed pair, "
-            f"−{100 * (1 - occ_p / constant):.1f} % / −{100 * (1 - occ_f / constant):.1f} %), "
+            f"{_percent_of(occ_p, constant)} / {_percent_of(occ_f, constant)}), "
             f"{occ_p - o_p:.2f} m behind") in flat  # fmt: skip
     curve = {16: "{} m at 1,600 steps", 40: "from 4,000 steps ({} m)", 48: "{} m at 4,800",
              56: "{} m at 5,600"}  # fmt: skip
@@ -521,20 +532,12 @@ def test_table_5_2_128_at_5800_steps_matches_its_outputs():
             f"{own['metrics']['mae']:.2f} m") in flat  # fmt: skip
 
 
-def _percent_of(value: float, constant: float) -> str:
-    """``value`` against ``constant`` as the pages print it: "−4.2 %" (better), "+3.1 %"."""
-    change = 100 * (value / constant - 1)
-    return f"{'−' if change < 0 else '+'}{abs(change):.1f} %"
-
-
 def test_table_5_2_128_6dof_row_matches_its_outputs():
     """The 6-DoF row of the 5,800-step Table 5.2 at 128 px, trained for one session's budget:
     its cells from the last scored checkpoint, its budget from metrics.csv, the curve every 400
     steps, the "O" row at the same steps, the 177-scene pair, seconds and median epoch."""
     folder = RESULTS / "table-5.2-128"
-    section = (folder / "README.md").read_text().split("## 5,800 steps per row")[1]
-    section = section.split("\n## ")[0]
-    flat = " ".join(section.split())
+    section, flat = _table_5800_section()
     cells = _table(section)["unsupervised DepthNet (P, no supervision: 6-DoF PoseNet)"]
     run = folder / "5800" / "6dof"
     epochs = _csv(run / "metrics.csv")
@@ -559,7 +562,7 @@ def test_table_5_2_128_6dof_row_matches_its_outputs():
             f"{_percent_of(p, constant)} / {_percent_of(f, constant)}") in flat  # fmt: skip
     # the curve under "P" every 400 steps from 800, and the "O" row at 800 and at the last step
     curve = flat.split("every 400 steps from 800: ")[1].split(" m")[0]
-    every = [k for k in range(8, last + 1, 4)]
+    every = list(range(8, last + 1, 4))
     assert every[-1] == last
     _agree(_numbers(curve), [mae(k) for k in every])
     quoted = flat.split("test cosine rises meanwhile (every 400 steps from 800: ")[1]
