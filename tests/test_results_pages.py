@@ -583,6 +583,66 @@ def test_table_5_2_128_6dof_row_matches_its_outputs():
     assert f"median epoch {statistics.median(seconds):.0f} s on two threads" in flat
 
 
+def test_table_5_2_128_sfmlearner_rows_match_their_outputs():
+    """The SFMLearner rows of the 5,800-step Table 5.2 at 128 px (scaled by its PoseNet and by
+    the ground truth's median), trained for one session's budget: their cells from the last
+    scored checkpoint, the budget from metrics.csv, the curves every 400 steps, the 177-scene
+    pair, seconds and median epoch."""
+    folder = RESULTS / "table-5.2-128"
+    section, flat = _table_5800_section()
+    table = _table(section)
+    run = folder / "5800" / "sfmlearner"
+    epochs = _csv(run / "metrics.csv")
+    last, steps = len(epochs), int(epochs[-1]["step"])
+    ckpt = "runs/unsup-128-1900/sfmlearner/kept/epoch_{}.pt".format
+    scored = _sequence_rows(run / "results.csv")
+
+    def row(epoch: int, scale: str, rows: dict = scored) -> dict:
+        return rows[("upright", ckpt(epoch), scale, "False")]
+
+    assert steps == 100 * last
+    training = _training_cosine(run / "steps.csv", steps - 100, steps)
+    assert f"{steps:,} steps of 16" in table["SFMLearner (P, O)"][1]
+    for name, scale in (("SFMLearner (P, O)", "P"), ("SFMLearner (GT, O)", "GT")):
+        cells = table[name]
+        assert cells[3] == "–"
+        _agree(_numbers(cells[2]), _mae_mre_mle(row(last, scale)))
+        test, _, on_training = cells[4].partition(" / ")
+        _agree(_numbers(test), _cosine(row(last, scale)))
+        _agree(_numbers(on_training), training)
+    constant = float(scored[("upright", "", "GT", "False")]["mae"])
+    p, g = (float(row(last, scale)["mae"]) for scale in ("P", "GT"))
+    assert (f"scores {p:.2f} m scaled by its PoseNet and {g:.2f} m by the ground truth's median "
+            f"after {steps:,} steps** ({_percent_of(p, constant)} / {_percent_of(g, constant)}"
+            ) in flat  # fmt: skip
+    every = list(range(4, last + 1, 4))
+    assert every[-1] == last
+    for label, scale in (("scaled by its PoseNet", "P"), ("by the ground truth's median", "GT")):
+        curve = flat.split(f"every 400 steps from 400, {label}: ")[1].split(" m")[0]
+        _agree(_numbers(curve), [float(row(k, scale)["mae"]) for k in every])
+    gap = max(abs(float(row(k, "GT")["mae"]) - constant) for k in every)
+    assert f"within {gap:.1f} m of the constant plane" in flat
+    first = row(every[0], "P")
+    assert (f"at {every[0] * 100} steps, divided by too short a translation, its maps are far "
+            f"too far: MRE {float(first['mre']):.2f}") in flat  # fmt: skip
+    quoted = flat.split("PoseNet's test cosine (every 400 steps from 400: ")[1].split(";")[0]
+    _agree(_numbers(quoted), [_cosine(row(k, "P"))[0] for k in every])
+    o_rows = _sequence_rows(RESULTS / "unsup-128" / "orientation-1900" / "results.csv")
+    o_row = [o_rows[("upright", f"runs/unsup-128-1900/orientation/kept/epoch_{k}.pt", "P", "False")]
+             for k in (20, 24)]  # fmt: skip
+    o_cosines = ", ".join(f"{_cosine(r)[0]:.2f}" for r in o_row).replace("-", "−")
+    assert (f"the \"O\" row's was {o_cosines.replace(', ', ' at 2,000 steps and ')} at 2,400"
+            ) in flat  # fmt: skip
+    o_maes = " and ".join(f"{float(r['mae']):.2f}" for r in o_row)
+    assert f'the "O" row\'s {o_maes} m at 2,000 and 2,400 steps' in flat
+    wide = _sequence_rows(run / "test-177" / "results.csv")
+    quoted = flat.split("SFMLearner rows on the 177 test scenes: ")[1].split(" m")[0]
+    _agree(_numbers(quoted), [float(row(last, s, wide)["mae"]) for s in ("P", "GT")])
+    seconds = [float(r["seconds"]) for r in epochs]
+    assert (f"SFMLearner trained in {sum(seconds):,.0f} s (`metrics.csv`; median epoch "
+            f"{statistics.median(seconds):.0f} s on two threads") in flat  # fmt: skip
+
+
 def _check_unsup_128_checkpoints(section: str, runs: dict[str, tuple[str, str]]) -> int:
     """Every "[prefix]N steps" row of ``section``'s tables against its run (``runs``: row prefix →
     (folder here, run.sh's runs folder)): both pair rules and the test cosine from the run's
