@@ -532,6 +532,12 @@ def test_table_5_2_128_at_5800_steps_matches_its_outputs():
             f"{own['metrics']['mae']:.2f} m") in flat  # fmt: skip
 
 
+def _o_row_1900(epoch: int) -> dict:
+    """The "O" row's eval-sequences line ("P") of the 1,519-scene run's checkpoint ``epoch``."""
+    rows = _sequence_rows(RESULTS / "unsup-128" / "orientation-1900" / "results.csv")
+    return rows[("upright", f"runs/unsup-128-1900/orientation/kept/epoch_{epoch}.pt", "P", "False")]
+
+
 def test_table_5_2_128_6dof_row_matches_its_outputs():
     """The 6-DoF row of the 5,800-step Table 5.2 at 128 px, trained for one session's budget:
     its cells from the last scored checkpoint, its budget from metrics.csv, the curve every 400
@@ -570,17 +576,15 @@ def test_table_5_2_128_6dof_row_matches_its_outputs():
                                              for k in every])  # fmt: skip
     gaps = [mae(k) - constant for k in every]
     assert f"the depth stays {min(gaps):.1f}-{max(gaps):.1f} m above the constant" in flat
-    o_rows = _sequence_rows(RESULTS / "unsup-128" / "orientation-1900" / "results.csv")
-    o_ckpt = "runs/unsup-128-1900/orientation/kept/epoch_{}.pt".format
-    o_at = [float(o_rows[("upright", o_ckpt(k), "P", "False")]["mae"]) for k in (8, last)]
+    o_at = [float(_o_row_1900(k)["mae"]) for k in (8, last)]
     assert (f'the "O" row was at {o_at[0]:.2f} m at 800 steps and {o_at[1]:.2f} m at '
             f"{steps:,}") in flat  # fmt: skip
     wide = _sequence_rows(run / "test-177" / "results.csv")
     quoted = flat.split("6-DoF row on the 177 test scenes: ")[1].split(" m")[0]
     _agree(_numbers(quoted), [mae(last, r, wide) for r in ("P", "P (fixed pair)")])
     seconds = [float(r["seconds"]) for r in epochs]
-    assert f"trained in {sum(seconds):,.0f} s" in flat
-    assert f"median epoch {statistics.median(seconds):.0f} s on two threads" in flat
+    assert (f"It trained in {sum(seconds):,.0f} s (`metrics.csv`; median epoch "
+            f"{statistics.median(seconds):.0f} s on two threads") in flat  # fmt: skip
 
 
 def test_table_5_2_128_sfmlearner_rows_match_their_outputs():
@@ -627,14 +631,11 @@ def test_table_5_2_128_sfmlearner_rows_match_their_outputs():
             f"too far: MRE {float(first['mre']):.2f}") in flat  # fmt: skip
     quoted = flat.split("PoseNet's test cosine (every 400 steps from 400: ")[1].split(";")[0]
     _agree(_numbers(quoted), [_cosine(row(k, "P"))[0] for k in every])
-    o_rows = _sequence_rows(RESULTS / "unsup-128" / "orientation-1900" / "results.csv")
-    o_row = [o_rows[("upright", f"runs/unsup-128-1900/orientation/kept/epoch_{k}.pt", "P", "False")]
-             for k in (20, 24)]  # fmt: skip
-    o_cosines = ", ".join(f"{_cosine(r)[0]:.2f}" for r in o_row).replace("-", "−")
-    assert (f"the \"O\" row's was {o_cosines.replace(', ', ' at 2,000 steps and ')} at 2,400"
-            ) in flat  # fmt: skip
-    o_maes = " and ".join(f"{float(r['mae']):.2f}" for r in o_row)
-    assert f'the "O" row\'s {o_maes} m at 2,000 and 2,400 steps' in flat
+    o_20, o_24 = _o_row_1900(20), _o_row_1900(24)
+    c_20, c_24 = (f"{_cosine(r)[0]:.2f}".replace("-", "−") for r in (o_20, o_24))
+    assert f'the "O" row\'s was {c_20} at 2,000 steps and {c_24} at 2,400' in flat
+    assert (f"the \"O\" row's {float(o_20['mae']):.2f} and {float(o_24['mae']):.2f} m at 2,000 "
+            "and 2,400 steps") in flat  # fmt: skip
     wide = _sequence_rows(run / "test-177" / "results.csv")
     quoted = flat.split("SFMLearner rows on the 177 test scenes: ")[1].split(" m")[0]
     _agree(_numbers(quoted), [float(row(last, s, wide)["mae"]) for s in ("P", "GT")])
